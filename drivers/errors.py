@@ -1,0 +1,53 @@
+"""The typed error family every layer of the cell raises and catches."""
+
+from __future__ import annotations
+
+
+class CellError(Exception):
+    """Base of every expected error: the CLI prints its one-line message and exits non-zero."""
+
+    exit_code = 1
+
+
+class ConfigError(CellError):
+    """A config file, plant profile or CLI argument is wrong; the message names the field."""
+
+    exit_code = 2
+
+
+class DataError(CellError):
+    """A data file (recording, dataset, artefact) is malformed; the message names file and column."""
+
+    exit_code = 2
+
+
+class DriverError(CellError):
+    """Something went wrong at the hardware boundary."""
+
+
+class LinkLostError(DriverError):
+    """The connection to a device is gone (socket closed, port vanished, no reply in time)."""
+
+
+class StaleDataError(DriverError):
+    """The device answers but its data stopped advancing (frozen counter or timestamp)."""
+
+
+class ProtocolError(DriverError):
+    """A reply did not follow the protocol (bad frame, bad length, exception reply)."""
+
+
+class LifecycleError(DriverError):
+    """A call is not allowed in the device's current lifecycle state (e.g. a command before arming)."""
+
+
+class CommandRejectedError(DriverError):
+    """A command was refused before reaching the device (NaN/inf, wrong shape)."""
+
+
+class SafetyStopError(CellError):
+    """A safety limit tripped; the arm has been stopped.  `reason` says which limit and by how much."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
