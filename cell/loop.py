@@ -1,0 +1,268 @@
+"""The fixed-period control loop: read state -> estimate wrench -> decide -> safety -> command -> record.
+
+The loop owns safety and shutdown: a safety limit, a driver fault, any exception or Ctrl+C stops the
+arm and closes the recording before the loop returns (or re-raises an unexpected error).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from cell.recorder import Recorder
+from cell.safety import SafetyMonitor
+from drivers.errors import CellError, DriverError, SafetyStopError
+from drivers.interfaces import Arm, ArmState, Wrench
+
+log = logging.getLogger(__name__)
+
+
+class ForceSource(Protocol):
+    """Where the task's tool wrench comes from: the F/T sensor, or (later) the virtual sensor."""
+
+    name: str
+
+    def read(self, state: ArmState) -> Wrench: ...
+
+    def rebias(self) -> None:
+        """Re-zero at the current state (arm at rest, no contact)."""
+
+
+class Ticker(Protocol):
+    """Paces the loop: lock-step with a simulator (advances it) or the wall clock (sleeps)."""
+
+    def start(self) -> None: ...
+
+    def wait(self) -> None: ...
+
+
+@dataclass
+class Observation:
+    t: float  # s since the loop started
+    cycle: int
+    state: ArmState
+    wrench: Wrench
+    q_cmd: np.ndarray  # last target actually sent
+
+
+@dataclass
+class Command:
+    q: np.ndarray  # joint-position target
+    log: dict[str, float | str] = field(default_factory=dict)  # extra columns for the recording
+    rebias_force: bool = False  # re-zero the force source before the next cycle
+
+
+class Task(Protocol):
+    name: str
+
+    @property
+    def done(self) -> bool: ...
+
+    @property
+    def state_name(self) -> str: ...
+
+    def step(self, obs: Observation) -> Command: ...
+
+    def abort(self, reason: str) -> None: ...
+
+    def summary(self) -> dict[str, Any]: ...
+
+
+@dataclass
+class OpenCell:
+    """The devices of a cell, opened and ready: what a task runs on."""
+
+    kind: str
+    arm: Arm
+    force: ForceSource  # the source the task regulates with
+    ticker: Ticker
+    ground_truth: ForceSource | None = None  # the F/T sensor, when the task uses another source
+
+
+class WallTicker:
+    """Sleeps until the next period boundary; counts overruns."""
+
+    def __init__(self, period: float) -> None:
+        self.period = period
+        self.overruns = 0
+        self._next = 0.0
+
+    def start(self) -> None:
+        self._next = time.perf_counter() + self.period
+
+    def wait(self) -> None:
+        now = time.perf_counter()
+        if now > self._next:
+            self.overruns += 1
+            self._next = now + self.period
+            return
+        time.sleep(self._next - now)
+        self._next += self.period
+
+
+@dataclass
+class TimingStats:
+    period: float
+    slow_fraction: float
+    samples: list[float] = field(default_factory=list)
+
+    def add(self, seconds: float) -> None:
+        self.samples.append(seconds)
+
+    def report(self) -> dict[str, float | int]:
+        if not self.samples:
+            return {"cycles": 0}
+        a = np.asarray(self.samples) * 1e3
+        slow = a > self.slow_fraction * self.period * 1e3
+        return {
+            "cycles": int(a.size),
+            "compute_ms_p50": float(np.percentile(a, 50)),
+            "compute_ms_p99": float(np.percentile(a, 99)),
+            "compute_ms_max": float(a.max()),
+            "slow_cycles": int(slow.sum()),
+            "slow_cycle_threshold_ms": self.slow_fraction * self.period * 1e3,
+        }
+
+
+@dataclass
+class LoopResult:
+    outcome: str  # "done", "failed", "safety_stop", "fault", "interrupted", "timeout", "error"
+    reason: str
+    cycles: int
+    sim_time_s: float
+    wall_time_s: float
+    timing: dict[str, float | int]
+
+
+class ControlLoop:
+    def __init__(
+        self,
+        arm: Arm,
+        force: ForceSource,
+        task: Task,
+        safety: SafetyMonitor,
+        ticker: Ticker,
+        recorder: Recorder | None,
+        period: float,
+        max_duration_s: float,
+        slow_fraction: float = 0.8,
+        ground_truth: ForceSource | None = None,
+    ) -> None:
+        self.arm = arm
+        self.force = force
+        self.task = task
+        self.safety = safety
+        self.ticker = ticker
+        self.recorder = recorder
+        self.period = period
+        self.max_cycles = int(round(max_duration_s / period))
+        self.timing = TimingStats(period, slow_fraction)
+        self.ground_truth = ground_truth
+
+    def run(self) -> LoopResult:
+        outcome, reason = "done", ""
+        cycle = 0
+        wall0 = time.perf_counter()
+        try:
+            self.arm.arm()
+            q_cmd = self.arm.last_sent
+            assert q_cmd is not None
+            self.ticker.start()
+            while not self.task.done:
+                if cycle >= self.max_cycles:
+                    outcome, reason = "timeout", f"task did not finish within {self.max_cycles * self.period:.1f} s"
+                    self.task.abort(reason)
+                    break
+                t0 = time.perf_counter()
+                state = self.arm.read_state()
+                wrench = self.force.read(state)
+                truth = self.ground_truth.read(state) if self.ground_truth is not None else None
+                self.safety.check_state(state, truth if truth is not None else wrench)
+                obs = Observation(t=cycle * self.period, cycle=cycle, state=state, wrench=wrench, q_cmd=q_cmd)
+                cmd = self.task.step(obs)
+                if self.task.done:
+                    self._record(obs, cmd, q_cmd, False, truth, time.perf_counter() - t0)
+                    break
+                self.safety.check_command(cmd.q)
+                sent = self.arm.send_target(cmd.q)
+                q_cmd = sent.q
+                if cmd.rebias_force:
+                    self.force.rebias()
+                    if self.ground_truth is not None:
+                        self.ground_truth.rebias()
+                compute = time.perf_counter() - t0
+                self.timing.add(compute)
+                self._record(obs, cmd, q_cmd, sent.clipped, truth, compute)
+                cycle += 1
+                self.ticker.wait()
+            if self.task.summary().get("outcome") == "failed":
+                outcome, reason = "failed", str(self.task.summary().get("reason", ""))
+        except SafetyStopError as exc:
+            outcome, reason = "safety_stop", exc.reason
+            self.task.abort(f"safety stop: {exc.reason}")
+            log.error("safety stop: %s", exc.reason)
+        except DriverError as exc:
+            outcome, reason = "fault", str(exc)
+            self.task.abort(f"driver fault: {exc}")
+            log.error("driver fault: %s", exc)
+        except CellError as exc:
+            outcome, reason = "error", str(exc)
+            self.task.abort(str(exc))
+            log.error("%s", exc)
+        except KeyboardInterrupt:
+            outcome, reason = "interrupted", "interrupted by the operator (Ctrl+C)"
+            self.task.abort(reason)
+            log.warning("interrupted: stopping the arm")
+        finally:
+            self._shutdown()
+        return LoopResult(
+            outcome=outcome,
+            reason=reason,
+            cycles=cycle,
+            sim_time_s=cycle * self.period,
+            wall_time_s=time.perf_counter() - wall0,
+            timing=self.timing.report(),
+        )
+
+    def _shutdown(self) -> None:
+        try:
+            self.arm.stop()
+        except Exception as exc:  # the arm's own watchdog stops it if we cannot reach it
+            log.error("could not command a stop: %s", exc)
+        if self.recorder is not None:
+            self.recorder.close()
+
+    def _record(
+        self,
+        obs: Observation,
+        cmd: Command,
+        q_cmd: np.ndarray,
+        clipped: bool,
+        truth: Wrench | None,
+        compute: float,
+    ) -> None:
+        if self.recorder is None:
+            return
+        s = obs.state
+        row: dict[str, Any] = {"t": obs.t, "cycle": obs.cycle, "state": self.task.state_name}
+        for i in range(len(s.q)):
+            row[f"q{i + 1}"] = float(s.q[i])
+        for i in range(len(s.q)):
+            row[f"dq{i + 1}"] = float(s.dq[i])
+        for i in range(len(s.q)):
+            row[f"tau{i + 1}"] = float(s.tau[i])
+        for i in range(len(s.q)):
+            row[f"q_cmd{i + 1}"] = float(q_cmd[i])
+        row["clipped"] = clipped
+        for k, v in zip(("fx", "fy", "fz", "mx", "my", "mz"), obs.wrench.vector, strict=True):
+            row[k] = float(v)
+        if truth is not None:
+            for k, v in zip(("fx", "fy", "fz", "mx", "my", "mz"), truth.vector, strict=True):
+                row[f"sensor_{k}"] = float(v)
+        row.update(cmd.log)
+        row["compute_ms"] = compute * 1e3
+        self.recorder.append(row)

@@ -1,0 +1,57 @@
+"""Plots of a recorded run (PNG): the normal force against its setpoint, like the paper's Fig. 12."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only: the cell runs headless
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pyarrow as pa  # noqa: E402
+
+
+def _state_spans(t: np.ndarray, states: list[str]) -> list[tuple[float, float, str]]:
+    spans, start = [], 0
+    for i in range(1, len(states) + 1):
+        if i == len(states) or states[i] != states[start]:
+            spans.append((float(t[start]), float(t[i - 1]), states[start]))
+            start = i
+    return spans
+
+
+def plot_force_run(table: pa.Table, path: Path, title: str, setpoint_col: str = "fz_setpoint") -> Path:
+    d = table.to_pydict()
+    t = np.asarray(d["t"])
+    states = [str(s) for s in d["state"]]
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(10, 7), height_ratios=[2, 1])
+    palette = plt.get_cmap("Pastel1")
+    names = list(dict.fromkeys(states))
+    for t0, t1, s in _state_spans(t, states):
+        ax.axvspan(t0, t1, color=palette(names.index(s) % 9), alpha=0.5, lw=0)
+    for i, s in enumerate(names):
+        ax.plot([], [], color=palette(i % 9), lw=8, alpha=0.5, label=s)
+    if "sensor_fz" in d:
+        ax.plot(t, d["fz"], color="tab:orange", lw=1, label="Fz used by the controller")
+        ax.plot(t, d["sensor_fz"], color="tab:green", lw=1, label="Fz measured (F/T sensor)")
+    else:
+        ax.plot(t, d["fz"], color="tab:green", lw=1, label="Fz measured (F/T sensor)")
+    if setpoint_col in d:
+        ax.plot(t, d[setpoint_col], "r--", lw=1.2, label="setpoint")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("normal force Fz [N]")
+    ax.set_title(title)
+    ax.legend(loc="upper left", fontsize=8, ncol=2)
+    ax.grid(alpha=0.3)
+    if "ref_x" in d:
+        ax2.plot(d["ref_x"], d["ref_y"], lw=1)
+        ax2.set_xlabel("TCP reference x [m]")
+        ax2.set_ylabel("y [m]")
+        ax2.set_title("path on the table (base frame)")
+        ax2.set_aspect("equal", adjustable="datalim")
+        ax2.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

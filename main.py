@@ -1,0 +1,197 @@
+"""Command-line entry of the TM5-700 force-control cell: run tasks, check status, benchmark, emulate devices."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cell.config import CellConfig, load_config, resolve
+from cell.robot import RobotModel, load_robot
+from drivers.errors import CellError, ConfigError
+
+log = logging.getLogger("tmcell")
+
+TASK_NAMES = ("wipe",)
+
+
+# --------------------------------------------------------------------------------------- building
+def robot_for(cfg: CellConfig, tool: str) -> RobotModel:
+    tcp = cfg.robot.tcp_wipe if tool == "wipe" else cfg.robot.tcp_peg
+    return load_robot(resolve(cfg.robot.urdf), tcp, cfg.robot.tool_mass, cfg.robot.tool_com)
+
+
+def build_task(name: str, cfg: CellConfig, robot: RobotModel) -> tuple[Any, float]:
+    if name == "wipe":
+        from tasks.wipe import WipeTask, load_wipe_config
+
+        wcfg = load_wipe_config(cfg.tasks.get("wipe"), f"{cfg.source}: tasks.wipe")
+        try:
+            task = WipeTask(wcfg, robot, cfg.scene.table_height, cfg.loop.period_s, np.asarray(cfg.robot.home))
+        except ValueError as exc:
+            raise ConfigError(f"{cfg.source}: tasks.wipe: {exc}") from None
+        return task, wcfg.max_duration_s
+    raise ConfigError(f"unknown task '{name}' (known: {', '.join(TASK_NAMES)})")
+
+
+def open_cell(cfg: CellConfig, kind: str, robot: RobotModel, seed: int | None, scene: str | None) -> Any:
+    """Returns an object with .open() -> OpenCell and .close()."""
+    if kind == "sim":
+        from sim.cell import make_sim_cell
+
+        return make_sim_cell(cfg, robot.limits, seed=seed, scene_kind=scene)
+    raise ConfigError(f"--cell {kind}: not available yet in this build (use --cell sim)")
+
+
+# --------------------------------------------------------------------------------------- commands
+def cmd_run(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config)
+    if args.plant:
+        cfg.plant = str(Path(args.plant).resolve())
+    if args.force_source != "sensor":
+        raise ConfigError(
+            f"--force-source {args.force_source}: the virtual force sensor is not built yet; use --force-source sensor"
+        )
+    robot = robot_for(cfg, "wipe")
+    task, max_duration = build_task(args.task, cfg, robot)
+    holder = open_cell(cfg, args.cell, robot, args.seed, "table")
+    cell = holder.open()
+    try:
+        from tasks.runner import run_task
+
+        summary = run_task(task, cell, cfg, robot, max_duration, record=not args.no_record,
+                           extra_summary={"seed": args.seed})
+    finally:
+        holder.close()
+    _emit(summary, args.json)
+    if summary["outcome"] == "interrupted":
+        return 130
+    return 0 if summary["outcome"] == "done" else 1
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config)
+    robot = robot_for(cfg, "wipe")
+    holder = open_cell(cfg, args.cell, robot, args.seed, None)
+    cell = holder.open()
+    try:
+        state = cell.arm.read_state()
+        wrench = cell.force.read(state)
+        tcp = robot.tcp_pose(state.q).translation
+        out = {
+            "cell": cell.kind,
+            "lifecycle": cell.arm.lifecycle.value,
+            "t": state.t,
+            "q_deg": np.degrees(state.q).round(3).tolist(),
+            "dq_deg_s": np.degrees(state.dq).round(3).tolist(),
+            "tau_nm": np.round(state.tau, 3).tolist(),
+            "status": vars(state.status) if hasattr(state.status, "__dict__") else str(state.status),
+            "tcp_m": np.round(tcp, 4).tolist(),
+            "wrench": np.round(wrench.vector, 3).tolist(),
+        }
+    finally:
+        holder.close()
+    _emit(out, args.json)
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    if args.what == "sim":
+        from sim.bench import bench_sim
+
+        out = bench_sim(load_config(args.config), seed=args.seed)
+    elif args.what == "plant":
+        from sim.characterise import characterise_plant
+
+        cfg = load_config(args.config)
+        if args.plant:
+            cfg.plant = str(Path(args.plant).resolve())
+        out = characterise_plant(cfg, seed=args.seed)
+    else:
+        raise ConfigError(f"bench {args.what}: unknown benchmark")
+    _emit(out, args.json)
+    return 0
+
+
+def _emit(out: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(out, default=_jsonable))
+        return
+    for key, value in out.items():
+        if isinstance(value, dict):
+            print(f"{key}:")
+            for k, v in value.items():
+                print(f"  {k}: {_fmt(v)}")
+        else:
+            print(f"{key}: {_fmt(value)}")
+
+
+def _fmt(v: Any) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return str(obj)
+
+
+# --------------------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="main.py", description=__doc__)
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--config", type=Path, default=None, help="cell config YAML (default config/cell.yaml)")
+        sp.add_argument("--seed", type=int, default=None, help="plant seed (default: the profile's)")
+        sp.add_argument("--json", action="store_true", help="print one JSON object as the last stdout line")
+
+    run = sub.add_parser("run", help="run a task on a cell")
+    run.add_argument("task", choices=TASK_NAMES)
+    run.add_argument("--cell", choices=("sim", "emulated", "real"), default="sim")
+    run.add_argument("--force-source", choices=("sensor", "virtual"), default="sensor")
+    run.add_argument("--plant", default=None, help="plant profile YAML (sim cells)")
+    run.add_argument("--no-record", action="store_true", help="do not write runs/<...>/")
+    common(run)
+    run.set_defaults(func=cmd_run)
+
+    st = sub.add_parser("status", help="connect to the cell and print its state")
+    st.add_argument("--cell", choices=("sim", "emulated", "real"), default="sim")
+    common(st)
+    st.set_defaults(func=cmd_status)
+
+    b = sub.add_parser("bench", help="benchmarks that print the project's measured figures")
+    b.add_argument("what", choices=("sim", "plant"))
+    b.add_argument("--plant", default=None, help="plant profile YAML (bench plant)")
+    common(b)
+    b.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    logging.getLogger("transitions").setLevel(logging.WARNING)
+    try:
+        return int(args.func(args))
+    except CellError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""Opens the in-process simulated cell: plant, `SimArm`, `SimForceSensor` and the lock-step ticker."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from cell.config import CellConfig, resolve
+from cell.force import SensorForceSource
+from cell.loop import OpenCell
+from drivers.errors import ConfigError
+from drivers.interfaces import JointLimits
+from sim.drivers import LockstepTicker, SimArm, SimForceSensor
+from sim.plant import Plant
+from sim.profile import load_profile
+
+
+@dataclass
+class SimCell:
+    plant: Plant
+    arm: SimArm
+    sensor: SimForceSensor
+
+    def open(self) -> OpenCell:
+        self.arm.connect()
+        self.sensor.connect()
+        return OpenCell(kind="sim", arm=self.arm, force=SensorForceSource(self.sensor),
+                        ticker=LockstepTicker(self.plant))
+
+    def close(self) -> None:
+        self.arm.disconnect()
+        self.sensor.disconnect()
+
+
+def make_plant(cfg: CellConfig, seed: int | None = None, scene_kind: str | None = None) -> Plant:
+    profile = load_profile(resolve(cfg.plant))
+    if seed is not None:
+        profile = replace(profile, seed=seed)
+    if abs(profile.sample_period_s - cfg.loop.period_s) > 1e-12:
+        raise ConfigError(
+            f"{cfg.source}: loop.period_s ({cfg.loop.period_s}) differs from the plant's sample_period_s "
+            f"({profile.sample_period_s}); the simulated controller runs at one rate"
+        )
+    scene = cfg.scene if scene_kind is None else replace(cfg.scene, kind=scene_kind)
+    return Plant(resolve(cfg.robot.urdf), profile, scene, np.asarray(cfg.robot.home, float))
+
+
+def make_sim_cell(cfg: CellConfig, limits: JointLimits, seed: int | None = None, scene_kind: str | None = None) -> SimCell:
+    plant = make_plant(cfg, seed, scene_kind)
+    return SimCell(plant=plant, arm=SimArm(plant, limits), sensor=SimForceSensor(plant))

@@ -1,0 +1,70 @@
+"""Simulated drivers: `SimArm` and `SimForceSensor` behind exactly the real interfaces, and the lock-step ticker."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from drivers.interfaces import Arm, ArmState, ForceSensor, JointLimits, Wrench
+from sim.plant import Plant
+
+
+class SimArm(Arm):
+    """The plant's arm through the `Arm` interface: a stop is the controller's protective stop."""
+
+    def __init__(self, plant: Plant, limits: JointLimits) -> None:
+        super().__init__(limits, plant.dt)
+        self.plant = plant
+
+    def _connect(self) -> None:
+        pass
+
+    def _disconnect(self) -> None:
+        pass
+
+    def _arm(self) -> None:
+        if self.plant.holding:
+            self.plant.release()
+
+    def _read_state(self) -> ArmState:
+        return self.plant.measured_state()
+
+    def _write_target(self, q: np.ndarray) -> None:
+        self.plant.set_target(q)
+
+    def _stop(self) -> None:
+        self.plant.hold()
+
+
+class SimForceSensor(ForceSensor):
+    """The WACOH model of the plant (offset, noise, quantisation, saturation), tared in software."""
+
+    def __init__(self, plant: Plant) -> None:
+        super().__init__()
+        self.plant = plant
+        self.bias = np.zeros(6)
+
+    def _connect(self) -> None:
+        pass
+
+    def _disconnect(self) -> None:
+        pass
+
+    def _read(self) -> Wrench:
+        w = self.plant.sensor_reading() - self.bias
+        return Wrench(t=self.plant.t, force=w[:3], torque=w[3:])
+
+    def _tare(self, samples: int) -> None:
+        self.bias = np.mean([self.plant.sensor_reading() for _ in range(max(1, samples))], axis=0)
+
+
+class LockstepTicker:
+    """Advances the plant one control period per loop cycle: the loop runs as fast as it can."""
+
+    def __init__(self, plant: Plant) -> None:
+        self.plant = plant
+
+    def start(self) -> None:
+        pass
+
+    def wait(self) -> None:
+        self.plant.step()

@@ -1,0 +1,181 @@
+"""Builds the plant's MuJoCo model (MJCF) from the same URDF, bent by the plant profile, plus a scene."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from cell.config import SceneConfig
+from sim.profile import LINKS, PlantProfile
+
+HOLE_WALL_SEGMENTS = 32
+PAD_MASS = 1.0  # kg: a spring-loaded wiping head; a lighter one chatters against the rigid table at 1 ms
+HOLE_WALL_THICKNESS = 0.012  # m, radial; wide enough to land a peg that is off by a few mm
+
+
+@dataclass(frozen=True)
+class BuiltScene:
+    xml: str
+    tcp_offset: np.ndarray  # true TCP in the flange frame [m]
+    tool_kind: str  # "wipe" or "peg"
+
+
+def _fmt(v: np.ndarray | list[float]) -> str:
+    return " ".join(f"{float(x):.9g}" for x in v)
+
+
+def _quat(R: np.ndarray) -> str:
+    q = pin.Quaternion(R)  # (x, y, z, w)
+    return _fmt([q.w, q.x, q.y, q.z])
+
+
+def _arm_bodies(urdf: Path, profile: PlantProfile) -> tuple[list[str], list[str]]:
+    """Opening and closing tags of the arm's body chain, with the profile's true inertial parameters."""
+    model = pin.buildModelFromUrdf(str(urdf))
+    fr = profile.friction
+    opening: list[str] = []
+    closing: list[str] = []
+    for j in range(1, model.njoints):
+        link = LINKS[j - 1]
+        placement = model.jointPlacements[j]
+        inertia = model.inertias[j]
+        mass = inertia.mass * profile.inertial.mass_scale[j - 1]
+        com = profile.inertial.com.get(link, list(inertia.lever))
+        diag = np.diag(inertia.inertia) * profile.inertial.inertia_scale[j - 1]
+        lo, hi = model.lowerPositionLimit[j - 1], model.upperPositionLimit[j - 1]
+        opening.append(
+            f'<body name="{link}" pos="{_fmt(placement.translation)}" quat="{_quat(placement.rotation)}">'
+            f'<inertial pos="{_fmt(com)}" mass="{mass:.6g}" diaginertia="{_fmt(diag)}"/>'
+            f'<joint name="j{j}" type="hinge" axis="0 0 1" range="{lo:.6f} {hi:.6f}" limited="true"'
+            f' armature="{profile.rotor_inertia[j - 1]:.6g}" damping="{fr.viscous[j - 1]:.6g}"'
+            f' frictionloss="{fr.coulomb[j - 1]:.6g}"/>'
+            f'<geom type="capsule" fromto="0 0 0 {_fmt(np.asarray(com) * 1.5)}" size="0.04" rgba=".8 .8 .85 1"'
+            f' contype="0" conaffinity="0"/>'
+        )
+        closing.append("</body>")
+    return opening, closing
+
+
+def _tool(profile: PlantProfile, kind: str) -> tuple[str, np.ndarray]:
+    """Sensor + tool bodies on the flange; returns (xml, TCP offset in the flange frame)."""
+    s, t = profile.sensor, profile.tool
+    parts = [
+        f'<body name="ft_sensor"><inertial pos="0 0 {s.length / 2:.6g}" mass="{s.mass:.6g}"'
+        f' diaginertia="2e-4 2e-4 2e-4"/>'
+        f'<geom type="cylinder" fromto="0 0 0 0 0 {s.length:.6g}" size="0.04" rgba=".3 .3 .3 1"'
+        f' contype="0" conaffinity="0"/>'
+        f'<body name="tool" pos="0 0 {s.length:.6g}"><site name="ft_site" pos="0 0 0"/>'
+    ]
+    if kind == "wipe":
+        # The pad is its own body on a slide joint along the tool axis: a sprung wiping head whose
+        # stiffness and damping are physical (N/m, N·s/m), so the compliance the force loop sees does
+        # not depend on the arm's effective mass the way MuJoCo's soft contacts do.  Its contact with
+        # the table is frictionless in MuJoCo (condim 1): sliding friction there lifts the head off
+        # the table in bursts (the soft-contact solver trades normal against tangential force), so
+        # the plant applies the head's Coulomb friction itself (Plant._wipe_friction).
+        z = t.wipe_length
+        parts.append(
+            f'<inertial pos="0 0 {z / 2:.6g}" mass="{t.wipe_mass:.6g}" diaginertia="6e-4 6e-4 2e-4"/>'
+            f'<geom type="cylinder" fromto="0 0 0 0 0 {z:.6g}" size="0.015" rgba=".2 .4 .8 1"'
+            f' contype="0" conaffinity="0"/>'
+            f'<body name="pad_body" pos="0 0 {z:.6g}">'
+            f'<joint name="pad_slide" type="slide" axis="0 0 1" range="-0.015 0.005"'
+            f' stiffness="{t.pad_stiffness:.6g}" damping="{t.pad_damping:.6g}"/>'
+            f'<geom name="pad" type="sphere" size="{t.pad_radius:.6g}" mass="{PAD_MASS}" rgba=".9 .9 .2 1"'
+            f' condim="1" solref="0.002 1" solimp="0.95 0.99 0.0005"/>'
+            f'</body>'
+        )
+        tcp = np.array([0.0, 0.0, s.length + z + t.pad_radius])
+    else:
+        g, r = t.gripper_length, t.peg_diameter / 2
+        parts.append(
+            f'<inertial pos="0 0 {g / 2:.6g}" mass="{t.gripper_mass:.6g}" diaginertia="8e-4 8e-4 4e-4"/>'
+            f'<geom type="box" pos="0 0 {g / 2:.6g}" size="0.03 0.03 {g / 2:.6g}" rgba=".2 .4 .8 1"'
+            f' contype="0" conaffinity="0"/>'
+            f'<geom name="peg" type="cylinder" pos="0 0 {g + t.peg_length / 2:.6g}"'
+            f' size="{r:.6g} {t.peg_length / 2:.6g}" rgba=".8 .5 .2 1" mass="0"'
+            f' friction="{t.peg_friction:.6g} 0.005 0.0001" solref="0.002 1" solimp="0.95 0.99 0.0005"/>'
+        )
+        tcp = np.array([0.0, 0.0, s.length + g + t.peg_length])
+    parts.append('<site name="tcp" pos="' + _fmt(tcp - np.array([0, 0, s.length])) + '"/>')
+    parts.append("</body></body>")
+    return "".join(parts), tcp
+
+
+def _table(scene: SceneConfig, profile: PlantProfile) -> str:
+    cx, cy = scene.table_center
+    sx, sy = scene.table_size
+    thick = 0.04
+    return (
+        f'<geom name="table" type="box" pos="{cx:.6g} {cy:.6g} {scene.table_height - thick / 2:.6g}"'
+        f' size="{sx / 2:.6g} {sy / 2:.6g} {thick / 2:.6g}" rgba=".6 .45 .3 1"'
+        ' condim="1" solref="0.002 1" solimp="0.95 0.99 0.0005"/>'
+    )
+
+
+def _hole_fixture(scene: SceneConfig, profile: PlantProfile) -> str:
+    """A ring of boxes whose inner faces are tangent to the hole (no chamfer), and a bottom plate."""
+    cx, cy = scene.hole_center
+    r_in = scene.hole_diameter / 2
+    depth = scene.hole_depth
+    top = scene.table_height
+    n = HOLE_WALL_SEGMENTS
+    t = HOLE_WALL_THICKNESS
+    half_w = (r_in + t) * math.tan(math.pi / n) * 1.05
+    geoms = [f'<body name="fixture" pos="{cx:.6g} {cy:.6g} {top:.6g}">']
+    contact = f'friction="{profile.tool.peg_friction:.6g} 0.005 0.0001" solref="0.002 1" solimp="0.95 0.99 0.0005"'
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        x, y = (r_in + t / 2) * math.cos(a), (r_in + t / 2) * math.sin(a)
+        geoms.append(
+            f'<geom type="box" pos="{x:.7g} {y:.7g} {-depth / 2:.6g}" euler="0 0 {a:.7g}"'
+            f' size="{t / 2:.6g} {half_w:.6g} {depth / 2:.6g}" rgba=".5 .5 .55 1" {contact}/>'
+        )
+    geoms.append(
+        f'<geom name="hole_bottom" type="box" pos="0 0 {-depth - 0.005:.6g}" size="{r_in + t:.6g}'
+        f' {r_in + t:.6g} 0.005" rgba=".4 .4 .45 1" {contact}/>'
+    )
+    geoms.append(f'<site name="hole_top" pos="0 0 0"/>')
+    geoms.append("</body>")
+    return "".join(geoms)
+
+
+def build_mjcf(urdf: Path, profile: PlantProfile, scene: SceneConfig, physics_dt: float) -> BuiltScene:
+    kind = "peg" if scene.kind == "peg" else "wipe"
+    opening, closing = _arm_bodies(urdf, profile)
+    tool_xml, tcp = _tool(profile, kind)
+    world = ""
+    if scene.kind == "table":
+        world = _table(scene, profile)
+    elif scene.kind == "peg":
+        world = _hole_fixture(scene, profile)
+    # The servo's PD acts through position actuators so that MuJoCo integrates its stiffness and
+    # damping implicitly (an explicit PD on the light wrist joints chatters against stiff contacts);
+    # a motor per joint carries the servo's feedforward and integral terms.
+    sv = profile.servo
+    actuators = "".join(
+        f'<position name="p{j}" joint="j{j}" kp="{sv.kp[j - 1]:.6g}" kv="{sv.kd[j - 1]:.6g}"/>'
+        for j in range(1, 7)
+    ) + "".join(f'<motor name="m{j}" joint="j{j}" gear="1"/>' for j in range(1, 7))
+    xml = (
+        '<mujoco model="tm5-700-plant">'
+        '<compiler angle="radian" autolimits="true"/>'
+        f'<option timestep="{physics_dt:.6g}" integrator="implicitfast" cone="elliptic" impratio="5">'
+        '<flag multiccd="enable"/></option>'
+        '<size memory="20M"/>'
+        '<worldbody><geom name="floor" type="plane" size="2 2 0.1" rgba=".9 .9 .9 1" contype="0" conaffinity="0"/>'
+        + world
+        + '<body name="base">'
+        + "".join(opening)
+        + tool_xml
+        + "".join(closing)
+        + "</body></worldbody>"
+        + f"<actuator>{actuators}</actuator>"
+        '<sensor><force name="ft_force" site="ft_site"/><torque name="ft_torque" site="ft_site"/></sensor>'
+        "</mujoco>"
+    )
+    return BuiltScene(xml=xml, tcp_offset=tcp, tool_kind=kind)

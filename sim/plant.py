@@ -1,0 +1,261 @@
+"""The simulated TM5-700: MuJoCo rigid bodies with true losses, the arm's own joint servo, and its sensing."""
+
+from __future__ import annotations
+
+import collections
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from cell.config import SceneConfig
+from drivers.interfaces import ArmState, ArmStatus
+from sim.mjcf import BuiltScene, build_mjcf
+from sim.profile import PlantProfile
+
+
+class Plant:
+    """A MuJoCo arm stepped one control period at a time (implements `sim.plant_api.PlantLike`).
+
+    The servo interpolates linearly from the previous target to the new one over the period (as the
+    real controller's interpolator does) and runs a PID plus its own model's bias torque every physics
+    step.  The measured joint torque is the motor torque (which overcomes friction), with noise,
+    quantisation and latency from the profile.  Friction magnitudes are updated every physics step
+    into MuJoCo's dry-friction constraint, so sticking is handled by the solver, not by a stiff tanh.
+    """
+
+    def __init__(
+        self,
+        urdf: Path,
+        profile: PlantProfile,
+        scene: SceneConfig,
+        q0: np.ndarray,
+        physics_dt: float | None = None,
+    ) -> None:
+        self.profile = profile
+        self.scene = scene
+        self.dt = profile.sample_period_s
+        h = physics_dt if physics_dt is not None else profile.physics_dt_s
+        self.substeps = max(1, round(self.dt / h))
+        self.built: BuiltScene = build_mjcf(urdf, profile, scene, self.dt / self.substeps)
+        self.model = mujoco.MjModel.from_xml_string(self.built.xml)
+        self.data = mujoco.MjData(self.model)
+        self.n_joints = nj = 6
+        self._arm = slice(0, nj)  # the arm's dofs come first; a tool may add its own (the pad slide)
+        self.rng = np.random.default_rng(profile.seed)
+        sp = profile.sensor
+        self.sensor_offset = np.concatenate([
+            self.rng.uniform(-sp.offset_force_n, sp.offset_force_n, 3),
+            self.rng.uniform(-sp.offset_torque_nm, sp.offset_torque_nm, 3),
+        ])
+        self.ripple_phase = self.rng.uniform(0, 2 * np.pi, 6)
+        fr = profile.friction
+        self._fc = np.array(fr.coulomb)
+        self._fs = np.array(fr.stribeck)
+        self._vs = np.array(fr.stribeck_velocity)
+        self._ra = np.array(fr.ripple_amplitude)
+        self._rc = np.array(fr.ripple_cycles)
+        self._load = np.array(fr.load)
+        self._effort = np.array(self._effort_limits())
+        self._kp = np.array(profile.servo.kp)
+        self._kd = np.array(profile.servo.kd)
+        self._ki = np.array(profile.servo.ki)
+        self._noise = np.array(profile.torque_sensing.noise_std)
+        self._quantum = profile.torque_sensing.quantum
+        self._tcp_site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "tcp")
+        self._flange_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "link_6")
+        self._ft_site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "ft_site")
+        self.external_wrench: np.ndarray | None = None  # (6,) world-frame force/torque applied at the TCP
+        self._pad_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "pad")
+        self._pad_body = int(self.model.geom_bodyid[self._pad_geom]) if self._pad_geom >= 0 else -1
+        self._pad_mu = profile.tool.pad_friction
+        self._f6 = np.zeros(6)
+        self._v6 = np.zeros(6)
+        self.reset(q0)
+
+    def _effort_limits(self) -> list[float]:
+        return [157.0, 157.0, 157.0, 43.0, 43.0, 43.0]
+
+    # ----------------------------------------------------------------------------- state
+    def reset(self, q0: np.ndarray) -> None:
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[self._arm] = q0
+        self._settle_tool()
+        # The servo holds q0 from the first instant: position actuators at q0, motors at the bias.
+        self.data.ctrl[:6] = q0
+        self.data.ctrl[6:] = self.data.qfrc_bias[self._arm]
+        mujoco.mj_forward(self.model, self.data)
+        self.t = 0.0
+        self.seq = 0
+        self.target = np.array(q0, float)
+        self._prev_target = self.target.copy()
+        self._integral = np.zeros(6)
+        self._tau = np.array(self.data.qfrc_bias[self._arm])  # motor torque, static equilibrium
+        self.holding = False
+        self.status = ArmStatus()
+        self._history: collections.deque[ArmState] = collections.deque(
+            maxlen=self.profile.torque_sensing.latency_periods + 1
+        )
+        self._history.append(self._sample())
+
+    def _settle_tool(self) -> None:
+        """Put tool-internal dofs (the pad spring) at their static rest so a run starts without a jolt."""
+        if self.model.nq > self.n_joints:
+            self.data.qpos[self.n_joints:] = 0.0
+            self.data.qvel[self.n_joints:] = 0.0
+        mujoco.mj_forward(self.model, self.data)
+
+    def set_target(self, q: np.ndarray) -> None:
+        if self.holding:
+            return
+        self._prev_target = self.target.copy()
+        self.target = np.array(q, float)
+
+    def hold(self) -> None:
+        """Protective stop: freeze the servo reference at the current position."""
+        self.holding = True
+        q = np.array(self.data.qpos[self._arm])
+        self.target = q
+        self._prev_target = q.copy()
+        self.status = ArmStatus(protective_stop=True)
+
+    def release(self) -> None:
+        """Clear a protective stop (the operator acknowledged it)."""
+        self.holding = False
+        q = np.array(self.data.qpos[self._arm])
+        self.target = q
+        self._prev_target = q.copy()
+        self.status = ArmStatus()
+
+    # ----------------------------------------------------------------------------- physics
+    def step(self) -> None:
+        m, d = self.model, self.data
+        n = self.substeps
+        span = self.target - self._prev_target
+        h = m.opt.timestep
+        dq_ref = span / self.dt
+        arm = self._arm
+        for k in range(1, n + 1):
+            q = d.qpos[arm]
+            v = d.qvel[arm]
+            q_ref = self._prev_target + span * (k / n)
+            self._integral += (q_ref - q) * h
+            # PD (kp, kd) lives in the position actuators (ctrl[:6] = q_ref); the motors add the
+            # velocity feedforward, the integral and the controller's own bias model.
+            ff = self._kd * dq_ref + self._ki * self._integral + d.qfrc_bias[arm]
+            d.ctrl[:6] = q_ref
+            d.ctrl[6:] = ff
+            tau_est = self._kp * (q_ref - q) - self._kd * v + ff
+            m.dof_frictionloss[arm] = (
+                self._fc * (1.0 + self._load * np.abs(tau_est) / self._effort)
+                + self._fs * np.exp(-((v / self._vs) ** 2))
+                + self._ra * np.sin(self._rc * q + self.ripple_phase)
+            )
+            if self._pad_body >= 0 or self.external_wrench is not None:
+                d.qfrc_applied[:] = 0.0
+                if self._pad_body >= 0:
+                    self._wipe_friction()
+                if self.external_wrench is not None:
+                    self._apply_tcp_wrench(self.external_wrench)
+            mujoco.mj_step(m, d)
+            self._tau = np.clip(np.array(d.qfrc_actuator[arm]), -self._effort, self._effort)
+        self._prev_target = self.target.copy()
+        self.t += self.dt
+        if not self.status.protective_stop:
+            self.seq += 1
+        self._history.append(self._sample())
+
+    def _wipe_friction(self, v_eps: float = 0.005) -> None:
+        """Coulomb friction of the wiping head on the table, regularised below `v_eps` [m/s]:
+        F = -mu * Fn * tanh(|v_t| / v_eps) * v_t / |v_t|, applied at the contact point."""
+        m, d = self.model, self.data
+        for i in range(d.ncon):
+            c = d.contact[i]
+            if self._pad_geom not in (c.geom1, c.geom2):
+                continue
+            mujoco.mj_contactForce(m, d, i, self._f6)
+            fn = self._f6[0]
+            if fn <= 0.0:
+                continue
+            normal = c.frame[:3]
+            mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, self._pad_body, self._v6, 0)
+            v = self._v6[3:]
+            vt = v - normal * (v @ normal)
+            speed = float(np.linalg.norm(vt))
+            if speed < 1e-9:
+                continue
+            force = -self._pad_mu * fn * np.tanh(speed / v_eps) * vt / speed
+            mujoco.mj_applyFT(m, d, force, np.zeros(3), c.pos, self._pad_body, d.qfrc_applied)
+
+    def _apply_tcp_wrench(self, wrench: np.ndarray) -> None:
+        """Apply a world-frame wrench at the TCP (a scripted 'hand' on the tool)."""
+        d = self.data
+        tool_body = self.model.site_bodyid[self._tcp_site]
+        mujoco.mj_applyFT(self.model, d, wrench[:3], wrench[3:], d.site_xpos[self._tcp_site], tool_body,
+                          d.qfrc_applied)
+
+    def _sample(self) -> ArmState:
+        d = self.data
+        tau = self._tau + self.rng.normal(0.0, 1.0, 6) * self._noise
+        if self._quantum > 0:
+            tau = np.round(tau / self._quantum) * self._quantum
+        return ArmState(
+            t=self.t, q=np.array(d.qpos[self._arm]), dq=np.array(d.qvel[self._arm]), tau=tau,
+            status=self.status, seq=self.seq,
+        )
+
+    # ----------------------------------------------------------------------------- views
+    def measured_state(self) -> ArmState:
+        return self._history[0]
+
+    def true_state(self) -> ArmState:
+        return self._history[-1]
+
+    def true_motor_torque(self) -> np.ndarray:
+        return np.array(self._tau)
+
+    def flange_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        d = self.data
+        return np.array(d.xpos[self._flange_body]), np.array(d.xmat[self._flange_body]).reshape(3, 3)
+
+    def tool_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        d = self.data
+        return np.array(d.site_xpos[self._tcp_site]), np.array(d.site_xmat[self._tcp_site]).reshape(3, 3)
+
+    def true_sensor_wrench(self) -> np.ndarray:
+        """Noiseless wrench at the sensor face, sensor frame, in the cell convention (tool on environment).
+
+        MuJoCo's force/torque sensors give what the parent (sensor body) exerts on the child (tool):
+        minus the tool's weight and inertial load, minus the contact force on the tool.  Once the tool
+        weight is tared away that is exactly the force the tool exerts on the environment, so pressing
+        the tool along its +z onto a surface reads +Fz, as the cell convention wants.
+        """
+        return np.array(self.data.sensordata[:6])
+
+    def sensor_reading(self) -> np.ndarray:
+        """What the WACOH sensor would report: true wrench + unloaded offset + noise, quantised, saturated."""
+        sp = self.profile.sensor
+        w = self.true_sensor_wrench() + self.sensor_offset
+        w[:3] += self.rng.normal(0.0, sp.noise_force_n, 3)
+        w[3:] += self.rng.normal(0.0, sp.noise_torque_nm, 3)
+        w[:3] = np.clip(np.round(w[:3] / sp.quantum_force_n) * sp.quantum_force_n,
+                        -sp.saturation_force_n, sp.saturation_force_n)
+        w[3:] = np.clip(np.round(w[3:] / sp.quantum_torque_nm) * sp.quantum_torque_nm,
+                        -sp.saturation_torque_nm, sp.saturation_torque_nm)
+        return w
+
+    def contact_force_world(self) -> np.ndarray:
+        """Sum of contact forces on the tool geoms, world frame (diagnostics and tests)."""
+        total = np.zeros(3)
+        f6 = np.zeros(6)
+        tool_body = self.model.site_bodyid[self._tcp_site]
+        for i in range(self.data.ncon):
+            c = self.data.contact[i]
+            b1 = self.model.geom_bodyid[c.geom1]
+            b2 = self.model.geom_bodyid[c.geom2]
+            if tool_body not in (b1, b2):
+                continue
+            mujoco.mj_contactForce(self.model, self.data, i, f6)
+            f = c.frame.reshape(3, 3).T @ f6[:3]  # force on geom2 from geom1, world frame
+            total += f if b2 == tool_body else -f
+        return total
