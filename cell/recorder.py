@@ -63,7 +63,7 @@ class Recorder:
         cols = {c: [r.get(c) for r in self._rows] for c in self._columns}
         table = pa.table(cols)
         final = self.log_dir / f"part-{self._parts:05d}.parquet"
-        tmp = final.with_suffix(".tmp")
+        tmp = final.with_name(f".{final.name}.tmp")  # dot-files are skipped by readers of the folder
         pq.write_table(table, tmp)
         os.replace(tmp, final)
         self._parts += 1

@@ -71,6 +71,8 @@ class Plant:
         self._pad_mu = profile.tool.pad_friction
         self._f6 = np.zeros(6)
         self._v6 = np.zeros(6)
+        tool = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "tool")
+        self._tool_bodies = {b for b in range(self.model.nbody) if self._descends(b, tool)}
         self.reset(q0)
 
     def _effort_limits(self) -> list[float]:
@@ -97,6 +99,13 @@ class Plant:
             maxlen=self.profile.torque_sensing.latency_periods + 1
         )
         self._history.append(self._sample())
+
+    def _descends(self, body: int, ancestor: int) -> bool:
+        while body > 0:
+            if body == ancestor:
+                return True
+            body = int(self.model.body_parentid[body])
+        return False
 
     def _settle_tool(self) -> None:
         """Put tool-internal dofs (the pad spring) at their static rest so a run starts without a jolt."""
@@ -152,7 +161,9 @@ class Plant:
                 + self._ra * np.sin(self._rc * q + self.ripple_phase)
             )
             if self._pad_body >= 0 or self.external_wrench is not None:
-                d.qfrc_applied[:] = 0.0
+                # Cartesian body forces (xfrc_applied), not joint-space ones: the F/T sensor reads
+                # body interaction forces and must feel both the friction and a hand on the tool.
+                d.xfrc_applied[:] = 0.0
                 if self._pad_body >= 0:
                     self._wipe_friction()
                 if self.external_wrench is not None:
@@ -185,14 +196,19 @@ class Plant:
             if speed < 1e-9:
                 continue
             force = -self._pad_mu * fn * np.tanh(speed / v_eps) * vt / speed
-            mujoco.mj_applyFT(m, d, force, np.zeros(3), c.pos, self._pad_body, d.qfrc_applied)
+            self._push(self._pad_body, force, np.zeros(3), c.pos)
 
     def _apply_tcp_wrench(self, wrench: np.ndarray) -> None:
         """Apply a world-frame wrench at the TCP (a scripted 'hand' on the tool)."""
         d = self.data
         tool_body = self.model.site_bodyid[self._tcp_site]
-        mujoco.mj_applyFT(self.model, d, wrench[:3], wrench[3:], d.site_xpos[self._tcp_site], tool_body,
-                          d.qfrc_applied)
+        self._push(int(tool_body), wrench[:3], wrench[3:], d.site_xpos[self._tcp_site])
+
+    def _push(self, body: int, force: np.ndarray, torque: np.ndarray, point: np.ndarray) -> None:
+        """Add a world-frame force applied at `point` (plus a torque) to a body's Cartesian load."""
+        d = self.data
+        d.xfrc_applied[body, :3] += force
+        d.xfrc_applied[body, 3:] += torque + np.cross(point - d.xipos[body], force)
 
     def _sample(self) -> ArmState:
         d = self.data
@@ -245,17 +261,16 @@ class Plant:
         return w
 
     def contact_force_world(self) -> np.ndarray:
-        """Sum of contact forces on the tool geoms, world frame (diagnostics and tests)."""
+        """Sum of the contact forces the environment exerts on the tool (and its head), world frame."""
         total = np.zeros(3)
         f6 = np.zeros(6)
-        tool_body = self.model.site_bodyid[self._tcp_site]
         for i in range(self.data.ncon):
             c = self.data.contact[i]
-            b1 = self.model.geom_bodyid[c.geom1]
-            b2 = self.model.geom_bodyid[c.geom2]
-            if tool_body not in (b1, b2):
+            b1 = int(self.model.geom_bodyid[c.geom1])
+            b2 = int(self.model.geom_bodyid[c.geom2])
+            if (b1 in self._tool_bodies) == (b2 in self._tool_bodies):
                 continue
             mujoco.mj_contactForce(self.model, self.data, i, f6)
-            f = c.frame.reshape(3, 3).T @ f6[:3]  # force on geom2 from geom1, world frame
-            total += f if b2 == tool_body else -f
+            f = c.frame.reshape(3, 3).T @ f6[:3]  # world frame, along the normal from geom1 to geom2
+            total += f if b2 in self._tool_bodies else -f
         return total
