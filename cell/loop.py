@@ -219,13 +219,23 @@ class ControlLoop:
             log.warning("interrupted: stopping the arm")
         finally:
             self._shutdown()
+        timing = self.timing.report()
+        if timing.get("slow_cycles"):
+            log.warning(
+                "%d of %d cycles took longer than %.1f ms to compute (p99 %.2f ms, max %.2f ms)",
+                timing["slow_cycles"], timing["cycles"], timing["slow_cycle_threshold_ms"],
+                timing["compute_ms_p99"], timing["compute_ms_max"],
+            )
+        overruns = getattr(self.ticker, "overruns", 0)
+        if overruns:
+            log.warning("the loop missed %d period deadlines", overruns)
         return LoopResult(
             outcome=outcome,
             reason=reason,
             cycles=cycle,
             sim_time_s=cycle * self.period,
             wall_time_s=time.perf_counter() - wall0,
-            timing=self.timing.report(),
+            timing={**timing, "missed_deadlines": overruns},
         )
 
     def _shutdown(self) -> None:

@@ -14,6 +14,7 @@ All quantities are SI (rad, rad/s, N·m, N, m, s); drivers convert at their wire
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import math
 import threading
@@ -178,10 +179,9 @@ class Arm(ABC):
                 return
             self._fault_reason = reason
             self._lifecycle = Lifecycle.FAULT
-            try:
+            # The link may be the fault; the device's own watchdog stops the arm then.
+            with contextlib.suppress(DriverError):
                 self._stop()
-            except DriverError:
-                pass  # the link may be the fault; the device's own watchdog stops it then
 
     def stop(self) -> None:
         """Stop motion now.  Always allowed; leaves ARMED for CONNECTED (a stop must be re-armed)."""
@@ -254,7 +254,7 @@ class Arm(ABC):
     @abstractmethod
     def _disconnect(self) -> None: ...
 
-    def _arm(self) -> None:
+    def _arm(self) -> None:  # noqa: B027 - optional hook, most devices need nothing here
         """Device-side preparation before accepting commands (clear a protective stop, etc.)."""
 
     @abstractmethod

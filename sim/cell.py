@@ -11,7 +11,7 @@ from cell.force import SensorForceSource
 from cell.loop import OpenCell
 from drivers.errors import ConfigError
 from drivers.interfaces import JointLimits
-from sim.drivers import LockstepTicker, SimArm, SimForceSensor
+from sim.drivers import LockstepTicker, PacedTicker, SimArm, SimForceSensor
 from sim.plant import Plant
 from sim.profile import load_profile
 
@@ -21,12 +21,13 @@ class SimCell:
     plant: Plant
     arm: SimArm
     sensor: SimForceSensor
+    clock: str = "auto"
 
     def open(self) -> OpenCell:
         self.arm.connect()
         self.sensor.connect()
-        return OpenCell(kind="sim", arm=self.arm, force=SensorForceSource(self.sensor),
-                        ticker=LockstepTicker(self.plant))
+        ticker = PacedTicker(self.plant) if self.clock == "wall" else LockstepTicker(self.plant)
+        return OpenCell(kind="sim", arm=self.arm, force=SensorForceSource(self.sensor), ticker=ticker)
 
     def close(self) -> None:
         self.arm.disconnect()
@@ -46,6 +47,8 @@ def make_plant(cfg: CellConfig, seed: int | None = None, scene_kind: str | None 
     return Plant(resolve(cfg.robot.urdf), profile, scene, np.asarray(cfg.robot.home, float))
 
 
-def make_sim_cell(cfg: CellConfig, limits: JointLimits, seed: int | None = None, scene_kind: str | None = None) -> SimCell:
+def make_sim_cell(
+    cfg: CellConfig, limits: JointLimits, seed: int | None = None, scene_kind: str | None = None
+) -> SimCell:
     plant = make_plant(cfg, seed, scene_kind)
-    return SimCell(plant=plant, arm=SimArm(plant, limits), sensor=SimForceSensor(plant))
+    return SimCell(plant=plant, arm=SimArm(plant, limits), sensor=SimForceSensor(plant), clock=cfg.loop.clock)

@@ -68,3 +68,24 @@ class LockstepTicker:
 
     def wait(self) -> None:
         self.plant.step()
+
+
+class PacedTicker:
+    """Advances the plant one period per cycle and sleeps to the wall clock: the sim at real speed."""
+
+    def __init__(self, plant: Plant) -> None:
+        from cell.loop import WallTicker
+
+        self.plant = plant
+        self.wall = WallTicker(plant.dt)
+
+    @property
+    def overruns(self) -> int:
+        return self.wall.overruns
+
+    def start(self) -> None:
+        self.wall.start()
+
+    def wait(self) -> None:
+        self.plant.step()
+        self.wall.wait()

@@ -139,7 +139,7 @@ def _hole_fixture(scene: SceneConfig, profile: PlantProfile) -> str:
         f'<geom name="hole_bottom" type="box" pos="0 0 {-depth - 0.005:.6g}" size="{r_in + t:.6g}'
         f' {r_in + t:.6g} 0.005" rgba=".4 .4 .45 1" {contact}/>'
     )
-    geoms.append(f'<site name="hole_top" pos="0 0 0"/>')
+    geoms.append('<site name="hole_top" pos="0 0 0"/>')
     geoms.append("</body>")
     return "".join(geoms)
 

@@ -45,6 +45,17 @@ def true_gravity(profile: PlantProfile, q: np.ndarray) -> np.ndarray:
     return pin.computeGeneralizedGravity(model, model.createData(), q)
 
 
+def hold(plant: Plant, q: np.ndarray, periods: int) -> tuple[np.ndarray, np.ndarray]:
+    """Servo at q for `periods`; returns the measured torques and true sensor wrenches, one row a period."""
+    taus, wrenches = [], []
+    for _ in range(periods):
+        plant.set_target(q)
+        plant.step()
+        taus.append(plant.measured_state().tau)
+        wrenches.append(plant.true_sensor_wrench())
+    return np.array(taus), np.array(wrenches)
+
+
 def settle(plant: Plant, q: np.ndarray, periods: int = 150) -> np.ndarray:
     taus = []
     for k in range(periods):
@@ -94,7 +105,7 @@ def test_profile_seed_makes_runs_repeatable_and_different_seeds_differ(profile):
 
     def run(seed: int) -> np.ndarray:
         plant = Plant(resolve("robots/tm5-700.urdf"), replace(profile, seed=seed), SceneConfig(kind="free"), q)
-        return np.array([(plant.set_target(q), plant.step(), plant.measured_state().tau)[2] for _ in range(20)])
+        return hold(plant, q, 20)[0]
 
     np.testing.assert_array_equal(run(3), run(3))
     assert not np.array_equal(run(3), run(4))
@@ -104,7 +115,7 @@ def test_torque_measurement_has_the_profiles_noise_and_quantum(profile):
     q = np.array(POSES[1])
     plant = Plant(resolve("robots/tm5-700.urdf"), profile, SceneConfig(kind="free"), q)
     settle(plant, q, 100)
-    taus = np.array([(plant.set_target(q), plant.step(), plant.measured_state().tau)[2] for _ in range(400)])
+    taus = hold(plant, q, 400)[0]
     std = taus.std(axis=0)
     np.testing.assert_allclose(std, profile.torque_sensing.noise_std, rtol=0.25)
     quantum = profile.torque_sensing.quantum
@@ -127,7 +138,7 @@ def test_pressing_the_table_reads_positive_fz_in_tool_frame(cfg, robot):
     q, ok = robot.ik(tool_down_pose(np.array([x, y, cfg.scene.table_height + 0.02])), np.asarray(cfg.robot.home))
     assert ok
     plant = Plant(resolve("robots/tm5-700.urdf"), profile, scene, q)
-    free = np.mean([(plant.set_target(q), plant.step(), plant.true_sensor_wrench())[2] for _ in range(60)], axis=0)
+    free = hold(plant, q, 60)[1].mean(axis=0)
     q_press, _ = robot.ik(tool_down_pose(np.array([x, y, cfg.scene.table_height - 0.002])), q)
     for k in range(100):
         plant.set_target(q + (q_press - q) * min(1.0, k / 50))
@@ -155,9 +166,9 @@ def test_sensor_reading_is_quantised_offset_and_saturated(profile):
 def test_external_wrench_at_the_tcp_shows_on_the_sensor(profile, robot, cfg):
     q, ok = robot.ik(tool_down_pose(np.array([0.45, -0.1, 0.3])), np.asarray(cfg.robot.home))
     plant = Plant(resolve("robots/tm5-700.urdf"), profile, SceneConfig(kind="free"), q)
-    base = np.mean([(plant.set_target(q), plant.step(), plant.true_sensor_wrench())[2] for _ in range(60)], axis=0)
+    base = hold(plant, q, 60)[1].mean(axis=0)
     plant.external_wrench = np.array([0.0, 0.0, 30.0, 0, 0, 0])  # a hand pushing the tool up (world +z)
-    loaded = np.mean([(plant.set_target(q), plant.step(), plant.true_sensor_wrench())[2] for _ in range(60)], axis=0)
+    loaded = hold(plant, q, 60)[1].mean(axis=0)
     # Pushing the tool up (world +z, tool -z) is the environment pushing on the tool: the tool
     # "exerts" +30 N along its own +z on the environment.
     assert loaded[2] - base[2] == pytest.approx(30.0, abs=1.5)
