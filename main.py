@@ -6,12 +6,13 @@ import argparse
 import json
 import logging
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from cell.config import CellConfig, load_config, resolve
+from cell.config import CONFIG_DIR, CellConfig, load_config, resolve
 from cell.robot import RobotModel, load_robot
 from drivers.errors import CellError, ConfigError
 
@@ -118,6 +119,50 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[Any, str]:
+    """The torque predictor the planner uses: a saved model artefact, or the nominal rigid body (P1)."""
+    if path:
+        from cell.dynamics.io import load_model  # the model lab's artefacts
+
+        model = load_model(Path(path), robot)
+        return model.predict, f"{model.meta.kind} ({path})"
+    log.warning("no --model given: planning with the nominal rigid-body model (P1); "
+                "validation on the cell tightens the plan where it is wrong")
+
+    def p1(q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
+        return np.array([robot.rnea(a, b, c) for a, b, c in zip(q, dq, ddq, strict=True)])
+
+    return p1, "P1 (nominal URDF)"
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    from cell.collision import CollisionChecker
+    from tasks.plan import load_plan_file, parse_waypoints, run_plans
+
+    cfg = load_config(args.config)
+    plan_file = load_plan_file(args.plans)
+    if args.waypoints:
+        plan_file = replace(plan_file, paths={"cli": parse_waypoints(args.waypoints)})
+    only = args.path or None
+    if only:
+        unknown = [p for p in only if p not in plan_file.paths]
+        if unknown:
+            raise ConfigError(f"{args.plans}: no path named '{unknown[0]}' (known: {', '.join(plan_file.paths)})")
+    cfg.safety = replace(cfg.safety, max_tcp_speed=plan_file.max_tcp_speed)
+    robot = robot_for(cfg, "wipe")
+    predictor, model_name = torque_model(cfg, robot, args.model)
+    collisions = CollisionChecker(robot, replace(cfg.scene, kind="free"))
+
+    def open_for_plan() -> tuple[Any, Any]:
+        holder = open_cell(cfg, args.cell, robot, args.seed, "free")
+        return holder.open(), holder
+
+    out = run_plans(cfg, robot, predictor, model_name, plan_file, open_for_plan, collisions,
+                    Path(cfg.recording.directory) / "plans", only)
+    _emit(out, args.json)
+    return 0
+
+
 def _emit(out: dict[str, Any], as_json: bool) -> None:
     if as_json:
         print(json.dumps(out, default=_jsonable))
@@ -168,6 +213,15 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--cell", choices=("sim", "emulated", "real"), default="sim")
     common(st)
     st.set_defaults(func=cmd_status)
+
+    pl = sub.add_parser("plan", help="time-optimal plans under torque limits, executed and compared to a baseline")
+    pl.add_argument("--plans", type=Path, default=CONFIG_DIR / "plans.yaml", help="paths and planner settings")
+    pl.add_argument("--path", action="append", help="only this named path (repeatable)")
+    pl.add_argument("--waypoints", default=None, help="'j1,..,j6; j1,..,j6; ...' in degrees instead of --plans paths")
+    pl.add_argument("--model", default=None, help="torque model artefact (default: nominal rigid body)")
+    pl.add_argument("--cell", choices=("sim", "emulated", "real"), default="sim")
+    common(pl)
+    pl.set_defaults(func=cmd_plan)
 
     b = sub.add_parser("bench", help="benchmarks that print the project's measured figures")
     b.add_argument("what", choices=("sim", "plant"))

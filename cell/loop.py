@@ -172,6 +172,9 @@ class ControlLoop:
             q_cmd = self.arm.last_sent
             assert q_cmd is not None
             self.ticker.start()
+            state: ArmState | None = None
+            wrench: Wrench | None = None
+            truth: Wrench | None = None
             while not self.task.done:
                 if cycle >= self.max_cycles:
                     outcome, reason = "timeout", f"task did not finish within {self.max_cycles * self.period:.1f} s"
@@ -205,6 +208,9 @@ class ControlLoop:
             outcome, reason = "safety_stop", exc.reason
             self.task.abort(f"safety stop: {exc.reason}")
             log.error("safety stop: %s", exc.reason)
+            if state is not None and wrench is not None:  # the sample that tripped it, for forensics
+                obs = Observation(t=cycle * self.period, cycle=cycle, state=state, wrench=wrench, q_cmd=q_cmd)
+                self._record(obs, Command(q=q_cmd), q_cmd, False, truth, 0.0)
         except DriverError as exc:
             outcome, reason = "fault", str(exc)
             self.task.abort(f"driver fault: {exc}")

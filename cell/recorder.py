@@ -52,6 +52,8 @@ class Recorder:
             raise RuntimeError("recording is closed")
         if self._columns is None:
             self._columns = list(row)
+        elif self.closed:
+            return
         self._rows.append(row)
         if len(self._rows) >= self.chunk_rows:
             self.flush()

@@ -52,6 +52,7 @@ def _arm_bodies(urdf: Path, profile: PlantProfile) -> tuple[list[str], list[str]
             f'<inertial pos="{_fmt(com)}" mass="{mass:.6g}" diaginertia="{_fmt(diag)}"/>'
             f'<joint name="j{j}" type="hinge" axis="0 0 1" range="{lo:.6f} {hi:.6f}" limited="true"'
             f' armature="{profile.rotor_inertia[j - 1]:.6g}" damping="{fr.viscous[j - 1]:.6g}"'
+            f' actuatorfrcrange="{-model.effortLimit[j - 1]:.6g} {model.effortLimit[j - 1]:.6g}"'
             f' frictionloss="{fr.coulomb[j - 1]:.6g}"/>'
             f'<geom type="capsule" fromto="0 0 0 {_fmt(np.asarray(com) * 1.5)}" size="0.04" rgba=".8 .8 .85 1"'
             f' contype="0" conaffinity="0"/>'

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import logging
 from pathlib import Path
 
 import mujoco
@@ -12,6 +13,8 @@ from cell.config import SceneConfig
 from drivers.interfaces import ArmState, ArmStatus
 from sim.mjcf import BuiltScene, build_mjcf
 from sim.profile import PlantProfile
+
+log = logging.getLogger(__name__)
 
 
 class Plant:
@@ -56,7 +59,11 @@ class Plant:
         self._ra = np.array(fr.ripple_amplitude)
         self._rc = np.array(fr.ripple_cycles)
         self._load = np.array(fr.load)
-        self._effort = np.array(self._effort_limits())
+        self._effort = self._effort_limits()
+        # A real controller faults on sustained motor saturation; so does this one.
+        self.saturation_fault_s = 0.024
+        self._saturated_s = np.zeros(6)
+        self.peak_demand = np.zeros(6)  # largest |torque the servo asked for| since reset_peaks()
         self._kp = np.array(profile.servo.kp)
         self._kd = np.array(profile.servo.kd)
         self._ki = np.array(profile.servo.ki)
@@ -75,8 +82,9 @@ class Plant:
         self._tool_bodies = {b for b in range(self.model.nbody) if self._descends(b, tool)}
         self.reset(q0)
 
-    def _effort_limits(self) -> list[float]:
-        return [157.0, 157.0, 157.0, 43.0, 43.0, 43.0]
+    def _effort_limits(self) -> np.ndarray:
+        """The motors' torque limits, as the URDF (and so the MJCF's actuatorfrcrange) states them."""
+        return np.array([self.model.jnt_actfrcrange[j][1] for j in range(self.n_joints)])
 
     # ----------------------------------------------------------------------------- state
     def reset(self, q0: np.ndarray) -> None:
@@ -91,6 +99,8 @@ class Plant:
         self.seq = 0
         self.target = np.array(q0, float)
         self._prev_target = self.target.copy()
+        self._prev2_target = self.target.copy()
+        self._M = np.zeros((self.model.nv, self.model.nv))
         self._integral = np.zeros(6)
         self._tau = np.array(self.data.qfrc_bias[self._arm])  # motor torque, static equilibrium
         self.holding = False
@@ -126,14 +136,20 @@ class Plant:
         q = np.array(self.data.qpos[self._arm])
         self.target = q
         self._prev_target = q.copy()
+        self._prev2_target = q.copy()
         self.status = ArmStatus(protective_stop=True)
 
+    def reset_peaks(self) -> None:
+        self.peak_demand[:] = 0.0
+
     def release(self) -> None:
-        """Clear a protective stop (the operator acknowledged it)."""
+        """Clear a protective stop or a saturation error (the operator acknowledged it)."""
         self.holding = False
+        self._saturated_s[:] = 0.0
         q = np.array(self.data.qpos[self._arm])
         self.target = q
         self._prev_target = q.copy()
+        self._prev2_target = q.copy()
         self.status = ArmStatus()
 
     # ----------------------------------------------------------------------------- physics
@@ -144,6 +160,12 @@ class Plant:
         h = m.opt.timestep
         dq_ref = span / self.dt
         arm = self._arm
+        # Inertial feedforward from the controller's own model: M(q) times the reference
+        # acceleration implied by the last three targets (as a real TM controller's servo does).
+        ddq_ref = (self.target - 2.0 * self._prev_target + self._prev2_target) / self.dt**2
+        self._prev2_target = self._prev_target.copy()
+        mujoco.mj_fullM(m, d, self._M)
+        ff_inertia = self._M[arm, arm] @ ddq_ref
         for k in range(1, n + 1):
             q = d.qpos[arm]
             v = d.qvel[arm]
@@ -151,7 +173,7 @@ class Plant:
             self._integral += (q_ref - q) * h
             # PD (kp, kd) lives in the position actuators (ctrl[:6] = q_ref); the motors add the
             # velocity feedforward, the integral and the controller's own bias model.
-            ff = self._kd * dq_ref + self._ki * self._integral + d.qfrc_bias[arm]
+            ff = self._kd * dq_ref + self._ki * self._integral + d.qfrc_bias[arm] + ff_inertia
             d.ctrl[:6] = q_ref
             d.ctrl[6:] = ff
             tau_est = self._kp * (q_ref - q) - self._kd * v + ff
@@ -169,7 +191,16 @@ class Plant:
                 if self.external_wrench is not None:
                     self._apply_tcp_wrench(self.external_wrench)
             mujoco.mj_step(m, d)
-            self._tau = np.clip(np.array(d.qfrc_actuator[arm]), -self._effort, self._effort)
+            self._tau = np.array(d.qfrc_actuator[arm])  # clamped at the effort limit by MuJoCo
+            demand = np.abs(d.actuator_force[:6] + d.actuator_force[6:12])
+            np.maximum(self.peak_demand, demand, out=self.peak_demand)
+            over = demand > self._effort
+            self._saturated_s = np.where(over, self._saturated_s + h, 0.0)
+        if np.any(self._saturated_s >= self.saturation_fault_s) and not self.status.error:
+            j = int(np.argmax(self._saturated_s))
+            log.error("plant: joint %d motor saturated for %.0f ms: controller error", j + 1, 1e3 * self._saturated_s[j])
+            self.hold()
+            self.status = ArmStatus(error=True, protective_stop=True)
         self._prev_target = self.target.copy()
         self.t += self.dt
         if not self.status.protective_stop:

@@ -1,0 +1,273 @@
+"""Time-efficient joint trajectories through waypoints under speed, acceleration and model-predicted torque limits.
+
+Two planners share one geometric path (a clamped cubic spline through the waypoints, parameterised by
+cumulative joint-space chord length), so their times compare like for like:
+
+- `ToppraPlanner`: the provably time-optimal timing (TOPP-RA) along the path.  toppra's torque
+  constraint needs torque to be second order in the path speed, which holds for the rigid-body part
+  of the model but not for friction or a learned residual; so the rigid-body part is the toppra
+  constraint and the rest of the model is handled by iteration: the full model is evaluated on the
+  timed trajectory and any joint that exceeds its limit gets its toppra bound lowered by the excess,
+  until the full model's torques fit.
+- `UniformScalingPlanner`: the operator's pendant speed knob: a fixed trapezoidal profile in the path
+  parameter, uniformly stretched to the shortest duration whose predicted torques fit (bisection).
+
+Both refuse waypoints outside the joint limits or paths that collide, with a clear message.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+import toppra as ta
+import toppra.algorithm as ta_algo
+import toppra.constraint as ta_con
+
+from cell.collision import CollisionChecker
+from cell.configio import require
+from cell.robot import RobotModel
+from drivers.errors import CellError
+
+log = logging.getLogger(__name__)
+ta.setup_logging("WARNING")
+
+TorqueFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (N,n) x3 -> (N,n)
+
+
+class PlanningError(CellError):
+    """The waypoints cannot be planned (outside limits, colliding, or infeasible)."""
+
+    exit_code = 2
+
+
+@dataclass
+class PlannerConfig:
+    torque_margin: float = 0.10  # plan to (1 - margin) x the effort limit
+    velocity_fraction: float = 1.0  # of the URDF speed limits
+    acceleration_limits: list[float] = field(default_factory=lambda: [40.0, 40.0, 40.0, 60.0, 60.0, 60.0])
+    gridpoints: int = 200
+    max_iterations: int = 10
+    sample_period_s: float = 0.008
+    baseline_blend: float = 0.25  # share of the baseline's duration spent accelerating (and braking)
+    collision_samples: int = 200
+
+    def validate(self, where: str) -> None:
+        require(0 <= self.torque_margin < 0.9, f"{where}.torque_margin", "must lie in [0, 0.9)")
+        require(0 < self.velocity_fraction <= 1, f"{where}.velocity_fraction", "must lie in (0, 1]")
+        require(len(self.acceleration_limits) == 6, f"{where}.acceleration_limits", "must have 6 values")
+        require(all(a > 0 for a in self.acceleration_limits), f"{where}.acceleration_limits", "must be > 0")
+        require(20 <= self.gridpoints <= 2000, f"{where}.gridpoints", "must lie in [20, 2000]")
+        require(0 < self.baseline_blend <= 0.5, f"{where}.baseline_blend", "must lie in (0, 0.5]")
+
+
+@dataclass
+class TimedTrajectory:
+    """A joint trajectory sampled every `dt`: t (N,), q, dq, ddq (N, n)."""
+
+    planner: str
+    t: np.ndarray
+    q: np.ndarray
+    dq: np.ndarray
+    ddq: np.ndarray
+    plan_time_s: float = 0.0
+    iterations: int = 1
+    torque_scale: np.ndarray | None = None  # per-joint bound tightening the plan needed
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1])
+
+    def at(self, t: float) -> np.ndarray:
+        if t <= 0:
+            return self.q[0]
+        if t >= self.duration:
+            return self.q[-1]
+        i = int(np.searchsorted(self.t, t) - 1)
+        u = (t - self.t[i]) / (self.t[i + 1] - self.t[i])
+        return self.q[i] + u * (self.q[i + 1] - self.q[i])
+
+
+class Planner(Protocol):
+    """Pluggable planner (a learned PPO-style planner can implement this for comparison)."""
+
+    name: str
+
+    def plan(self, waypoints: np.ndarray, torque_scale: np.ndarray | None = None) -> TimedTrajectory: ...
+
+
+class GeometricPath:
+    """Clamped cubic spline through the waypoints, s in [0, 1] by cumulative chord length."""
+
+    def __init__(self, waypoints: np.ndarray) -> None:
+        w = np.asarray(waypoints, float)
+        chord = np.linalg.norm(np.diff(w, axis=0), axis=1)
+        if np.any(chord < 1e-6):
+            raise PlanningError("two consecutive waypoints are identical")
+        s = np.concatenate([[0.0], np.cumsum(chord)]) / chord.sum()
+        self.waypoints = w
+        self.spline = ta.SplineInterpolator(s, w, bc_type="clamped")
+
+    def eval(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.spline(s), self.spline(s, 1), self.spline(s, 2)
+
+
+class _Base:
+    def __init__(
+        self,
+        robot: RobotModel,
+        torque_fn: TorqueFn,
+        cfg: PlannerConfig,
+        collisions: CollisionChecker | None = None,
+    ) -> None:
+        self.robot = robot
+        self.torque_fn = torque_fn
+        self.cfg = cfg
+        self.collisions = collisions
+        lim = robot.limits
+        self.effort = lim.effort
+        self.vlim = lim.velocity * cfg.velocity_fraction
+        self.alim = np.asarray(cfg.acceleration_limits, float)
+
+    def torque_limit(self, scale: np.ndarray | None = None) -> np.ndarray:
+        base = self.effort * (1.0 - self.cfg.torque_margin)
+        return base if scale is None else base * scale
+
+    def check_waypoints(self, waypoints: np.ndarray) -> GeometricPath:
+        w = np.asarray(waypoints, float)
+        n = self.robot.n
+        if w.ndim != 2 or w.shape[1] != n or w.shape[0] < 2:
+            raise PlanningError(f"waypoints must be at least 2 rows of {n} joint angles, got shape {w.shape}")
+        if not np.all(np.isfinite(w)):
+            raise PlanningError("waypoints contain NaN or inf")
+        lim = self.robot.limits
+        for i, q in enumerate(w):
+            bad = np.where((q < lim.lower) | (q > lim.upper))[0]
+            if bad.size:
+                j = int(bad[0])
+                raise PlanningError(
+                    f"waypoint {i}: joint {j + 1} at {np.degrees(q[j]):.1f} deg is outside its limits "
+                    f"[{np.degrees(lim.lower[j]):.0f}, {np.degrees(lim.upper[j]):.0f}] deg"
+                )
+        path = GeometricPath(w)
+        if self.collisions is not None:
+            s = np.linspace(0, 1, self.cfg.collision_samples)
+            qs = path.eval(s)[0]
+            if np.any(qs < lim.lower) or np.any(qs > lim.upper):
+                raise PlanningError("the spline through the waypoints leaves the joint limits between waypoints")
+            hit = self.collisions.path_collisions(qs, tool_may_touch=False)
+            if hit is not None:
+                k, what = hit
+                raise PlanningError(
+                    f"the path collides at {100 * s[k]:.0f} % of its length: {', '.join(map(str, what))}"
+                )
+        return path
+
+    def sample(self, name: str, ts: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> TimedTrajectory:
+        return TimedTrajectory(planner=name, t=ts, q=q, dq=dq, ddq=ddq)
+
+    def excess(self, traj: TimedTrajectory, scale: np.ndarray | None = None) -> np.ndarray:
+        """Per joint: peak |predicted torque| / planning limit (<= 1 means it fits)."""
+        tau = self.torque_fn(traj.q, traj.dq, traj.ddq)
+        return np.max(np.abs(tau), axis=0) / self.torque_limit(scale)
+
+
+class ToppraPlanner(_Base):
+    name = "toppra"
+
+    def plan(self, waypoints: np.ndarray, torque_scale: np.ndarray | None = None) -> TimedTrajectory:
+        t0 = time.perf_counter()
+        path = self.check_waypoints(waypoints)
+        n = self.robot.n
+        scale = np.ones(n) if torque_scale is None else np.array(torque_scale, float)
+        vel = ta_con.JointVelocityConstraint(np.column_stack([-self.vlim, self.vlim]))
+        acc = ta_con.JointAccelerationConstraint(np.column_stack([-self.alim, self.alim]))
+
+        def rigid(q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
+            return self.robot.rnea(q, dq, ddq)
+
+        grid = np.linspace(0, 1, self.cfg.gridpoints + 1)
+        for it in range(1, self.cfg.max_iterations + 1):
+            lim = self.torque_limit(scale)
+            torque = ta_con.JointTorqueConstraint(rigid, np.column_stack([-lim, lim]), np.zeros(n))
+            algo = ta_algo.TOPPRA([vel, acc, torque], path.spline, gridpoints=grid, parametrizer="ParametrizeConstAccel")
+            jnt = algo.compute_trajectory()
+            if jnt is None:
+                raise PlanningError("no feasible timing: the torque limits cannot hold the arm on this path")
+            ts = np.arange(0.0, jnt.duration + 1e-9, self.cfg.sample_period_s)
+            if ts[-1] < jnt.duration:
+                ts = np.append(ts, jnt.duration)
+            traj = self.sample(self.name, ts, jnt(ts), jnt(ts, 1), jnt(ts, 2))
+            ratio = self.excess(traj)
+            if np.all(ratio <= 1.0 + 1e-3):
+                traj.plan_time_s = time.perf_counter() - t0
+                traj.iterations = it
+                traj.torque_scale = scale
+                return traj
+            # Lower the rigid-body bound of each violating joint by its excess and try again.
+            scale = np.where(ratio > 1.0, scale / ratio * 0.995, scale)
+        raise PlanningError(
+            f"the full model's torques still exceed the limits after {self.cfg.max_iterations} re-plans "
+            f"(worst ratio {float(np.max(ratio)):.3f})"
+        )
+
+
+class UniformScalingPlanner(_Base):
+    """Baseline: a trapezoidal profile in s, uniformly time-scaled to the fastest that fits."""
+
+    name = "uniform"
+
+    def profile(self, T: float, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        b = self.cfg.baseline_blend
+        v = 1.0 / (T * (1.0 - b))  # cruise ds/dt so that s(T) = 1
+        a = v / (b * T)
+        tb = b * T
+        s = np.where(ts < tb, 0.5 * a * ts**2,
+                     np.where(ts < T - tb, 0.5 * a * tb**2 + v * (ts - tb), 1.0 - 0.5 * a * (T - ts) ** 2))
+        sd = np.where(ts < tb, a * ts, np.where(ts < T - tb, v, a * (T - ts)))
+        sdd = np.where(ts < tb, a, np.where(ts < T - tb, 0.0, -a))
+        return np.clip(s, 0, 1), sd, sdd
+
+    def timed(self, path: GeometricPath, T: float) -> TimedTrajectory:
+        ts = np.arange(0.0, T + 1e-9, self.cfg.sample_period_s)
+        if ts[-1] < T:
+            ts = np.append(ts, T)
+        s, sd, sdd = self.profile(T, ts)
+        p, dp, ddp = path.eval(s)
+        dq = dp * sd[:, None]
+        ddq = ddp * sd[:, None] ** 2 + dp * sdd[:, None]
+        return self.sample(self.name, ts, p, dq, ddq)
+
+    def fits(self, traj: TimedTrajectory, scale: np.ndarray) -> bool:
+        if np.any(np.abs(traj.dq) > self.vlim * (1 + 1e-6)) or np.any(np.abs(traj.ddq) > self.alim * (1 + 1e-6)):
+            return False
+        return bool(np.all(self.excess(traj, scale) <= 1.0))
+
+    def plan(self, waypoints: np.ndarray, torque_scale: np.ndarray | None = None) -> TimedTrajectory:
+        t0 = time.perf_counter()
+        path = self.check_waypoints(waypoints)
+        scale = np.ones(self.robot.n) if torque_scale is None else np.array(torque_scale, float)
+        lo, hi = 0.05, 0.5
+        while not self.fits(self.timed(path, hi), scale):
+            lo, hi = hi, hi * 2
+            if hi > 120:
+                raise PlanningError("no uniform time-scaling under 120 s keeps the torques within the limits")
+        for _ in range(40):  # bisection to ~1 ms
+            if hi - lo < 1e-3:
+                break
+            mid = 0.5 * (lo + hi)
+            if self.fits(self.timed(path, mid), scale):
+                hi = mid
+            else:
+                lo = mid
+        traj = self.timed(path, hi)
+        traj.plan_time_s = time.perf_counter() - t0
+        traj.torque_scale = scale
+        return traj
+
+
+PLANNERS: dict[str, type[_Base]] = {"toppra": ToppraPlanner, "uniform": UniformScalingPlanner}

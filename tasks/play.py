@@ -1,0 +1,138 @@
+"""Plays a timed joint trajectory on the cell and measures it: elapsed time to arrival and peak joint torques."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from transitions import Machine
+
+from cell.loop import Command, Observation
+from cell.planner import TimedTrajectory
+from cell.trajectory import JointMove
+
+
+class P(enum.Enum):
+    MOVE_TO_START = "move_to_start"
+    SETTLE = "settle"
+    PLAY = "play"
+    ARRIVE = "arrive"
+    DONE = "done"
+    FAILED = "failed"
+
+
+@dataclass
+class PlayConfig:
+    move_speed_fraction: float = 0.3
+    settle_s: float = 0.4
+    arrive_tolerance_rad: float = np.radians(0.2)
+    arrive_speed_rad_s: float = np.radians(2.0)
+    max_arrive_s: float = 2.0
+
+
+class PlayTask:
+    """Move to the trajectory's start, settle, play it at the control rate, wait for arrival.
+
+    Elapsed time runs from the first played sample to arrival (every joint within tolerance of the
+    end and nearly at rest); peak torques are the measured joint torques over that interval.
+    """
+
+    name = "play"
+
+    def __init__(self, traj: TimedTrajectory, dt: float, speed_limits: np.ndarray, cfg: PlayConfig | None = None):
+        self.traj = traj
+        self.dt = dt
+        self.cfg = cfg or PlayConfig()
+        self.speed = speed_limits * self.cfg.move_speed_fraction
+        self.state: P = P.MOVE_TO_START
+        self.machine = Machine(model=self, states=P, initial=P.MOVE_TO_START, auto_transitions=False,
+                               after_state_change="_entered")
+        m = self.machine
+        m.add_transition("arrived_at_start", P.MOVE_TO_START, P.SETTLE)
+        m.add_transition("settled", P.SETTLE, P.PLAY)
+        m.add_transition("played", P.PLAY, P.ARRIVE)
+        m.add_transition("arrived", P.ARRIVE, P.DONE)
+        m.add_transition("fail", "*", P.FAILED)
+        self._t = 0.0
+        self._move: JointMove | None = None
+        self._t_play = 0.0
+        self.elapsed_s: float | None = None
+        self.peak_tau: np.ndarray | None = None
+        self.reason = ""
+
+    @property
+    def done(self) -> bool:
+        return self.state in (P.DONE, P.FAILED)
+
+    @property
+    def state_name(self) -> str:
+        return self.state.value
+
+    def _entered(self) -> None:
+        self._t = 0.0
+
+    def abort(self, reason: str) -> None:
+        if not self.done:
+            self.reason = reason
+            self.fail()
+
+    def step(self, obs: Observation) -> Command:
+        q = getattr(self, f"_{self.state.value}")(obs)
+        self._t += self.dt
+        return Command(q=q, log={"plan_t": self._t_play})
+
+    def _move_to_start(self, obs: Observation) -> np.ndarray:
+        if self._move is None:
+            self._move = JointMove(obs.q_cmd, self.traj.q[0], self.speed)
+        q = self._move.at(self._t)  # before any transition: entering a state resets the clock
+        if self._t >= self._move.duration:
+            self.arrived_at_start()
+        return q
+
+    def _settle(self, obs: Observation) -> np.ndarray:
+        if self._t >= self.cfg.settle_s:
+            self.settled()
+            self.peak_tau = np.abs(obs.state.tau)
+        return self.traj.q[0]
+
+    def _play(self, obs: Observation) -> np.ndarray:
+        self._track_peak(obs)
+        self._t_play += self.dt
+        if self._t_play >= self.traj.duration:
+            self.played()
+        return self.traj.at(self._t_play)
+
+    def _arrive(self, obs: Observation) -> np.ndarray:
+        self._track_peak(obs)
+        end = self.traj.q[-1]
+        s = obs.state
+        if np.max(np.abs(s.q - end)) < self.cfg.arrive_tolerance_rad and np.max(np.abs(s.dq)) < self.cfg.arrive_speed_rad_s:
+            # The measured state is one sample old at most; count arrival at this cycle.
+            self.elapsed_s = self._t_play + self._t
+            self.arrived()
+        elif self._t > self.cfg.max_arrive_s:
+            self.reason = f"did not arrive within {self.cfg.max_arrive_s:.1f} s of the trajectory's end"
+            self.fail()
+        return end
+
+    def _done(self, obs: Observation) -> np.ndarray:
+        return obs.q_cmd
+
+    _failed = _done
+
+    def _track_peak(self, obs: Observation) -> None:
+        assert self.peak_tau is not None
+        np.maximum(self.peak_tau, np.abs(obs.state.tau), out=self.peak_tau)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "task": self.name,
+            "outcome": "done" if self.state is P.DONE else ("failed" if self.state is P.FAILED else "running"),
+            "reason": self.reason,
+            "planner": self.traj.planner,
+            "planned_duration_s": self.traj.duration,
+            "elapsed_s": self.elapsed_s,
+            "peak_tau_nm": None if self.peak_tau is None else self.peak_tau.tolist(),
+        }
