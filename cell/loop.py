@@ -167,14 +167,15 @@ class ControlLoop:
         outcome, reason = "done", ""
         cycle = 0
         wall0 = time.perf_counter()
+        q_cmd: np.ndarray | None = None
+        state: ArmState | None = None
+        wrench: Wrench | None = None
+        truth: Wrench | None = None
         try:
             self.arm.arm()
             q_cmd = self.arm.last_sent
             assert q_cmd is not None
             self.ticker.start()
-            state: ArmState | None = None
-            wrench: Wrench | None = None
-            truth: Wrench | None = None
             while not self.task.done:
                 if cycle >= self.max_cycles:
                     outcome, reason = "timeout", f"task did not finish within {self.max_cycles * self.period:.1f} s"
@@ -208,7 +209,7 @@ class ControlLoop:
             outcome, reason = "safety_stop", exc.reason
             self.task.abort(f"safety stop: {exc.reason}")
             log.error("safety stop: %s", exc.reason)
-            if state is not None and wrench is not None:  # the sample that tripped it, for forensics
+            if state is not None and wrench is not None and q_cmd is not None:  # the tripping sample
                 obs = Observation(t=cycle * self.period, cycle=cycle, state=state, wrench=wrench, q_cmd=q_cmd)
                 self._record(obs, Command(q=q_cmd), q_cmd, False, truth, 0.0)
         except DriverError as exc:

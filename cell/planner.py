@@ -194,7 +194,8 @@ class ToppraPlanner(_Base):
         for it in range(1, self.cfg.max_iterations + 1):
             lim = self.torque_limit(scale)
             torque = ta_con.JointTorqueConstraint(rigid, np.column_stack([-lim, lim]), np.zeros(n))
-            algo = ta_algo.TOPPRA([vel, acc, torque], path.spline, gridpoints=grid, parametrizer="ParametrizeConstAccel")
+            algo = ta_algo.TOPPRA([vel, acc, torque], path.spline, gridpoints=grid,
+                                  parametrizer="ParametrizeConstAccel")
             jnt = algo.compute_trajectory()
             if jnt is None:
                 raise PlanningError("no feasible timing: the torque limits cannot hold the arm on this path")

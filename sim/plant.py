@@ -98,8 +98,7 @@ class Plant:
         self.t = 0.0
         self.seq = 0
         self.target = np.array(q0, float)
-        self._prev_target = self.target.copy()
-        self._prev2_target = self.target.copy()
+        self._targets = (self.target.copy(), self.target.copy(), self.target.copy())  # k-3, k-2, k-1
         self._M = np.zeros((self.model.nv, self.model.nv))
         self._integral = np.zeros(6)
         self._tau = np.array(self.data.qfrc_bias[self._arm])  # motor torque, static equilibrium
@@ -127,7 +126,6 @@ class Plant:
     def set_target(self, q: np.ndarray) -> None:
         if self.holding:
             return
-        self._prev_target = self.target.copy()
         self.target = np.array(q, float)
 
     def hold(self) -> None:
@@ -135,8 +133,7 @@ class Plant:
         self.holding = True
         q = np.array(self.data.qpos[self._arm])
         self.target = q
-        self._prev_target = q.copy()
-        self._prev2_target = q.copy()
+        self._targets = (q.copy(), q.copy(), q.copy())
         self.status = ArmStatus(protective_stop=True)
 
     def reset_peaks(self) -> None:
@@ -148,32 +145,38 @@ class Plant:
         self._saturated_s[:] = 0.0
         q = np.array(self.data.qpos[self._arm])
         self.target = q
-        self._prev_target = q.copy()
-        self._prev2_target = q.copy()
+        self._targets = (q.copy(), q.copy(), q.copy())
         self.status = ArmStatus()
 
     # ----------------------------------------------------------------------------- physics
     def step(self) -> None:
         m, d = self.model, self.data
         n = self.substeps
-        span = self.target - self._prev_target
         h = m.opt.timestep
-        dq_ref = span / self.dt
+        T = self.dt
         arm = self._arm
-        # Inertial feedforward from the controller's own model: M(q) times the reference
-        # acceleration implied by the last three targets (as a real TM controller's servo does).
-        ddq_ref = (self.target - 2.0 * self._prev_target + self._prev2_target) / self.dt**2
-        self._prev2_target = self._prev_target.copy()
+        # The controller buffers the streamed targets by one period and interpolates them with a
+        # cubic Hermite spline (central-difference velocities), as arm controllers do with streamed
+        # set-points: during this period the reference runs from target[k-2] to target[k-1].  The
+        # servo feeds forward the spline's velocity and its own model's M(q) times its acceleration.
+        p3, p2, p1 = self._targets
+        p0 = self.target
+        v2 = (p1 - p3) / (2 * T)
+        v1 = (p0 - p2) / (2 * T)
         mujoco.mj_fullM(m, d, self._M)
-        ff_inertia = self._M[arm, arm] @ ddq_ref
+        M = self._M[arm, arm]
         for k in range(1, n + 1):
+            u = k / n
+            q_ref = (2 * u**3 - 3 * u**2 + 1) * p2 + (u**3 - 2 * u**2 + u) * T * v2 \
+                + (-2 * u**3 + 3 * u**2) * p1 + (u**3 - u**2) * T * v1
+            dq_ref = ((6 * u**2 - 6 * u) * (p2 - p1) / T + (3 * u**2 - 4 * u + 1) * v2 + (3 * u**2 - 2 * u) * v1)
+            ddq_ref = ((12 * u - 6) * (p2 - p1) / T + (6 * u - 4) * v2 + (6 * u - 2) * v1) / T
             q = d.qpos[arm]
             v = d.qvel[arm]
-            q_ref = self._prev_target + span * (k / n)
             self._integral += (q_ref - q) * h
             # PD (kp, kd) lives in the position actuators (ctrl[:6] = q_ref); the motors add the
-            # velocity feedforward, the integral and the controller's own bias model.
-            ff = self._kd * dq_ref + self._ki * self._integral + d.qfrc_bias[arm] + ff_inertia
+            # velocity and inertial feedforward, the integral and the controller's own bias model.
+            ff = self._kd * dq_ref + self._ki * self._integral + d.qfrc_bias[arm] + M @ ddq_ref
             d.ctrl[:6] = q_ref
             d.ctrl[6:] = ff
             tau_est = self._kp * (q_ref - q) - self._kd * v + ff
@@ -198,10 +201,11 @@ class Plant:
             self._saturated_s = np.where(over, self._saturated_s + h, 0.0)
         if np.any(self._saturated_s >= self.saturation_fault_s) and not self.status.error:
             j = int(np.argmax(self._saturated_s))
-            log.error("plant: joint %d motor saturated for %.0f ms: controller error", j + 1, 1e3 * self._saturated_s[j])
+            log.error("plant: joint %d motor saturated for %.0f ms: controller error",
+                      j + 1, 1e3 * self._saturated_s[j])
             self.hold()
             self.status = ArmStatus(error=True, protective_stop=True)
-        self._prev_target = self.target.copy()
+        self._targets = (p2, p1, p0.copy())
         self.t += self.dt
         if not self.status.protective_stop:
             self.seq += 1

@@ -123,10 +123,17 @@ def plan_and_validate(
         if ok or r == rounds:
             return Execution(traj, summary["outcome"] if ok else "limit_exceeded", summary.get("elapsed_s"),
                              peak, summary.get("run_dir"), r)
-        # A measured torque near or over its limit, or a stop: tighten the joints that came closest
-        # to their limit by their excess over the planning limit, and re-plan.
-        planned = 1.0 - pcfg.torque_margin
-        scale = scale * np.where(ratio > planned, planned / np.maximum(ratio, 1e-9), 1.0) * 0.99
+        # The plant needed more torque than the model predicted (or stopped).  For each joint over
+        # the planning limit, the model under-predicts by measured / predicted peak: bound the
+        # model's torque by the planning limit divided by that factor, and re-plan.  A saturated
+        # motor reads at most its limit, so the factor is a lower bound; repeated rounds close in.
+        planning_limit = planner.torque_limit()
+        predicted = np.max(np.abs(torque_fn(traj.q, traj.dq, traj.ddq)), axis=0)
+        over = peak > planning_limit
+        factor = peak / np.maximum(predicted, 1e-6)
+        factor = np.where(peak >= 0.99 * effort, factor * 1.5, factor)  # clamped reading: it needed more
+        wanted = predicted / (planning_limit * factor) * 0.95  # model-torque bound / planning limit
+        scale = np.where(over, np.minimum(scale, wanted), scale)
     raise AssertionError("unreachable")
 
 

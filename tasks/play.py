@@ -108,7 +108,8 @@ class PlayTask:
         self._track_peak(obs)
         end = self.traj.q[-1]
         s = obs.state
-        if np.max(np.abs(s.q - end)) < self.cfg.arrive_tolerance_rad and np.max(np.abs(s.dq)) < self.cfg.arrive_speed_rad_s:
+        at_rest = np.max(np.abs(s.dq)) < self.cfg.arrive_speed_rad_s
+        if np.max(np.abs(s.q - end)) < self.cfg.arrive_tolerance_rad and at_rest:
             # The measured state is one sample old at most; count arrival at this cycle.
             self.elapsed_s = self._t_play + self._t
             self.arrived()

@@ -153,7 +153,10 @@ def test_force_spike_stops_the_arm_and_closes_the_recording(cfg, robot, tmp_path
     assert result.outcome == "safety_stop"
     assert "tool force" in result.reason
     assert plant.holding and holder.arm.lifecycle is not Lifecycle.ARMED
-    assert rec.closed and read_log(tmp_path / "run").num_rows == result.cycles
+    log = read_log(tmp_path / "run").to_pydict()
+    assert rec.closed and len(log["t"]) == result.cycles + 1
+    # The last row is the sample that tripped the stop: its force is over the limit.
+    assert np.hypot(np.hypot(log["fx"][-1], log["fy"][-1]), log["fz"][-1]) > cfg.safety.max_tool_force_n
     assert 20 <= result.cycles <= 23  # stopped within a couple of periods of the spike
     assert "safety stop" in task.aborted
 
