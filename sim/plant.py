@@ -17,6 +17,16 @@ from sim.profile import PlantProfile
 log = logging.getLogger(__name__)
 
 
+def _hermite_basis(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cubic Hermite basis (value, d/du, d2/du2) at u = k/n, k = 1..n, for control rows
+    [p_start, p_end, T*v_start, T*v_end]."""
+    u = np.arange(1, n + 1) / n
+    h = np.column_stack([2 * u**3 - 3 * u**2 + 1, -2 * u**3 + 3 * u**2, u**3 - 2 * u**2 + u, u**3 - u**2])
+    h1 = np.column_stack([6 * u**2 - 6 * u, -6 * u**2 + 6 * u, 3 * u**2 - 4 * u + 1, 3 * u**2 - 2 * u])
+    h2 = np.column_stack([12 * u - 6, -12 * u + 6, 6 * u - 4, 6 * u - 2])
+    return h, h1, h2
+
+
 class Plant:
     """A MuJoCo arm stepped one control period at a time (implements `sim.plant_api.PlantLike`).
 
@@ -41,6 +51,7 @@ class Plant:
         h = physics_dt if physics_dt is not None else profile.physics_dt_s
         self.substeps = max(1, round(self.dt / h))
         self.built: BuiltScene = build_mjcf(urdf, profile, scene, self.dt / self.substeps)
+        self._hb, self._hb1, self._hb2 = _hermite_basis(self.substeps)
         self.model = mujoco.MjModel.from_xml_string(self.built.xml)
         self.data = mujoco.MjData(self.model)
         self.n_joints = nj = 6
@@ -161,22 +172,21 @@ class Plant:
         # servo feeds forward the spline's velocity and its own model's M(q) times its acceleration.
         p3, p2, p1 = self._targets
         p0 = self.target
-        v2 = (p1 - p3) / (2 * T)
-        v1 = (p0 - p2) / (2 * T)
+        # Hermite control data: positions p2, p1 and central-difference velocities (scaled by T).
+        knots = np.stack([p2, p1, (p1 - p3) / 2.0, (p0 - p2) / 2.0])
+        q_refs = self._hb @ knots
+        dq_refs = self._hb1 @ knots / T
         mujoco.mj_fullM(m, d, self._M)
-        M = self._M[arm, arm]
-        for k in range(1, n + 1):
-            u = k / n
-            q_ref = (2 * u**3 - 3 * u**2 + 1) * p2 + (u**3 - 2 * u**2 + u) * T * v2 \
-                + (-2 * u**3 + 3 * u**2) * p1 + (u**3 - u**2) * T * v1
-            dq_ref = ((6 * u**2 - 6 * u) * (p2 - p1) / T + (3 * u**2 - 4 * u + 1) * v2 + (3 * u**2 - 2 * u) * v1)
-            ddq_ref = ((12 * u - 6) * (p2 - p1) / T + (6 * u - 4) * v2 + (6 * u - 2) * v1) / T
+        ff_inertia = (self._hb2 @ knots / T**2) @ self._M[arm, arm].T
+        for k in range(n):
+            q_ref = q_refs[k]
+            dq_ref = dq_refs[k]
             q = d.qpos[arm]
             v = d.qvel[arm]
             self._integral += (q_ref - q) * h
             # PD (kp, kd) lives in the position actuators (ctrl[:6] = q_ref); the motors add the
             # velocity and inertial feedforward, the integral and the controller's own bias model.
-            ff = self._kd * dq_ref + self._ki * self._integral + d.qfrc_bias[arm] + M @ ddq_ref
+            ff = self._kd * dq_ref + self._ki * self._integral + d.qfrc_bias[arm] + ff_inertia[k]
             d.ctrl[:6] = q_ref
             d.ctrl[6:] = ff
             tau_est = self._kp * (q_ref - q) - self._kd * v + ff
