@@ -112,17 +112,26 @@ def plan_and_validate(
     w = np.radians(np.asarray(waypoints_deg, float))
     effort = robot.limits.effort
     scale = np.ones(robot.n)
+    last: Execution | None = None
     for r in range(1, rounds + 1):
-        traj = planner.plan(w, scale)
+        try:
+            traj = planner.plan(w, scale)
+        except PlanningError as exc:
+            if last is None:
+                raise
+            # Tightening for the model's error has made the path infeasible: keep the last attempt.
+            log.warning("%s/%s: re-plan %d impossible (%s); keeping round %d", name, planner_name, r, exc, r - 1)
+            return last
         summary = execute(traj, cfg, robot, open_cell)
         peak = measured_peak(summary.get("run_dir"), robot.n)
         ratio = peak / effort
         ok = summary["outcome"] == "done" and bool(np.all(ratio <= 1.0))
         log.info("%s/%s round %d: planned %.3f s, executed %s s, peak torque ratio %.3f (%s)", name, planner_name,
                  r, traj.duration, summary.get("elapsed_s"), float(np.nanmax(ratio)), summary["outcome"])
+        last = Execution(traj, summary["outcome"] if ok else "limit_exceeded", summary.get("elapsed_s"),
+                         peak, summary.get("run_dir"), r)
         if ok or r == rounds:
-            return Execution(traj, summary["outcome"] if ok else "limit_exceeded", summary.get("elapsed_s"),
-                             peak, summary.get("run_dir"), r)
+            return last
         # The plant needed more torque than the model predicted (or stopped).  For each joint over
         # the planning limit, the model under-predicts by measured / predicted peak: bound the
         # model's torque by the planning limit divided by that factor, and re-plan.  A saturated

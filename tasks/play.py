@@ -7,11 +7,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from transitions import Machine
 
 from cell.loop import Command, Observation
 from cell.planner import TimedTrajectory
 from cell.trajectory import JointMove
+from tasks.base import MachineTask
 
 
 class P(enum.Enum):
@@ -32,7 +32,7 @@ class PlayConfig:
     max_arrive_s: float = 2.0
 
 
-class PlayTask:
+class PlayTask(MachineTask):
     """Move to the trajectory's start, settle, play it at the control rate, wait for arrival.
 
     Elapsed time runs from the first played sample to arrival (every joint within tolerance of the
@@ -46,53 +46,32 @@ class PlayTask:
         self.dt = dt
         self.cfg = cfg or PlayConfig()
         self.speed = speed_limits * self.cfg.move_speed_fraction
-        self.state: P = P.MOVE_TO_START
-        self.machine = Machine(model=self, states=P, initial=P.MOVE_TO_START, auto_transitions=False,
-                               after_state_change="_entered")
-        m = self.machine
-        m.add_transition("arrived_at_start", P.MOVE_TO_START, P.SETTLE)
-        m.add_transition("settled", P.SETTLE, P.PLAY)
-        m.add_transition("played", P.PLAY, P.ARRIVE)
-        m.add_transition("arrived", P.ARRIVE, P.DONE)
-        m.add_transition("fail", "*", P.FAILED)
-        self._t = 0.0
+        super().__init__(P.MOVE_TO_START, [
+            ("arrived_at_start", P.MOVE_TO_START, P.SETTLE),
+            ("settled", P.SETTLE, P.PLAY),
+            ("played", P.PLAY, P.ARRIVE),
+            ("arrived", P.ARRIVE, P.DONE),
+        ])
         self._move: JointMove | None = None
         self._t_play = 0.0
         self.elapsed_s: float | None = None
         self.peak_tau: np.ndarray | None = None
-        self.reason = ""
-
-    @property
-    def done(self) -> bool:
-        return self.state in (P.DONE, P.FAILED)
-
-    @property
-    def state_name(self) -> str:
-        return self.state.value
-
-    def _entered(self) -> None:
-        self._t = 0.0
-
-    def abort(self, reason: str) -> None:
-        if not self.done:
-            self.reason = reason
-            self.fail()
 
     def step(self, obs: Observation) -> Command:
         q = getattr(self, f"_{self.state.value}")(obs)
-        self._t += self.dt
+        self.t_state += self.dt
         return Command(q=q, log={"plan_t": self._t_play})
 
     def _move_to_start(self, obs: Observation) -> np.ndarray:
         if self._move is None:
             self._move = JointMove(obs.q_cmd, self.traj.q[0], self.speed)
-        q = self._move.at(self._t)  # before any transition: entering a state resets the clock
-        if self._t >= self._move.duration:
+        q = self._move.at(self.t_state)  # before any transition: entering a state resets the clock
+        if self.t_state >= self._move.duration:
             self.arrived_at_start()
         return q
 
     def _settle(self, obs: Observation) -> np.ndarray:
-        if self._t >= self.cfg.settle_s:
+        if self.t_state >= self.cfg.settle_s:
             self.settled()
             self.peak_tau = np.abs(obs.state.tau)
         return self.traj.q[0]
@@ -111,11 +90,10 @@ class PlayTask:
         at_rest = np.max(np.abs(s.dq)) < self.cfg.arrive_speed_rad_s
         if np.max(np.abs(s.q - end)) < self.cfg.arrive_tolerance_rad and at_rest:
             # The measured state is one sample old at most; count arrival at this cycle.
-            self.elapsed_s = self._t_play + self._t
+            self.elapsed_s = self._t_play + self.t_state
             self.arrived()
-        elif self._t > self.cfg.max_arrive_s:
-            self.reason = f"did not arrive within {self.cfg.max_arrive_s:.1f} s of the trajectory's end"
-            self.fail()
+        elif self.t_state > self.cfg.max_arrive_s:
+            self.fail_because(f"did not arrive within {self.cfg.max_arrive_s:.1f} s of the trajectory's end")
         return end
 
     def _done(self, obs: Observation) -> np.ndarray:
@@ -130,7 +108,7 @@ class PlayTask:
     def summary(self) -> dict[str, Any]:
         return {
             "task": self.name,
-            "outcome": "done" if self.state is P.DONE else ("failed" if self.state is P.FAILED else "running"),
+            "outcome": self.outcome,
             "reason": self.reason,
             "planner": self.traj.planner,
             "planned_duration_s": self.traj.duration,

@@ -8,13 +8,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from transitions import Machine
 
 from cell.configio import load_dataclass, require
 from cell.impedance import DiscreteImpedance, ImpedanceParams
 from cell.loop import Command, Observation
 from cell.robot import RobotModel
 from cell.trajectory import JointMove, PathProfile, tool_down_pose
+from tasks.base import MachineTask
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ def load_wipe_config(raw: dict[str, Any] | None, where: str) -> WipeConfig:
     return load_dataclass(WipeConfig, raw or {}, where)
 
 
-class WipeTask:
+class WipeTask(MachineTask):
     """State machine (transitions) for force-controlled wiping; the force comes from the loop's source."""
 
     name = "wipe"
@@ -86,20 +86,15 @@ class WipeTask:
         self.robot = robot
         self.dt = dt
         self.table_height = table_height
-        self.state: S = S.MOVE_TO_START
-        self.machine = Machine(
-            model=self, states=S, initial=S.MOVE_TO_START, auto_transitions=False,
-            after_state_change="_entered",
-        )
-        m = self.machine
-        m.add_transition("arrived", S.MOVE_TO_START, S.TARE)
-        m.add_transition("tared", S.TARE, S.APPROACH)
-        m.add_transition("touched", S.APPROACH, S.RAMP)
-        m.add_transition("ramped", S.RAMP, S.SETTLE)
-        m.add_transition("settled", S.SETTLE, S.WIPE)
-        m.add_transition("finished", S.WIPE, S.RETRACT)
-        m.add_transition("retracted", S.RETRACT, S.DONE)
-        m.add_transition("fail", "*", S.FAILED)
+        super().__init__(S.MOVE_TO_START, [
+            ("arrived", S.MOVE_TO_START, S.TARE),
+            ("tared", S.TARE, S.APPROACH),
+            ("touched", S.APPROACH, S.RAMP),
+            ("ramped", S.RAMP, S.SETTLE),
+            ("settled", S.SETTLE, S.WIPE),
+            ("finished", S.WIPE, S.RETRACT),
+            ("retracted", S.RETRACT, S.DONE),
+        ])
 
         x0, y0 = cfg.path[0]
         self.pre_contact = tool_down_pose(np.array([x0, y0, table_height + cfg.approach_height_m]))
@@ -111,8 +106,6 @@ class WipeTask:
         self.path = PathProfile(np.asarray(cfg.path, float), cfg.speed_mps, cfg.accel_mps2)
         self.law = DiscreteImpedance(cfg.impedance, dt)
         self.ref = self.pre_contact.copy()
-        self.reason = ""
-        self._t_state = 0.0
         self._t_in_band = 0.0
         self._t_lost = 0.0
         self._contact_z = 0.0
@@ -121,31 +114,13 @@ class WipeTask:
         self.wipe_forces: list[float] = []
         self.peak_force = 0.0
 
-    # ------------------------------------------------------------------------- Task protocol
-    @property
-    def done(self) -> bool:
-        return self.state in (S.DONE, S.FAILED)
-
-    @property
-    def state_name(self) -> str:
-        return self.state.value
-
-    def abort(self, reason: str) -> None:
-        if not self.done:
-            self.reason = reason
-            self.fail()
-
-    def _entered(self) -> None:
-        self._t_state = 0.0
-        log.info("wipe: %s", self.state.value)
-
     def step(self, obs: Observation) -> Command:
         fz = float(obs.wrench.force[2])
         if np.isfinite(fz):
             self.peak_force = max(self.peak_force, fz)
         handler = getattr(self, f"_{self.state.value}")
         q, setpoint, rebias = handler(obs, fz)
-        self._t_state += self.dt
+        self.t_state += self.dt
         return Command(
             q=q,
             log={"fz_setpoint": setpoint, "ref_x": float(self.ref.translation[0]),
@@ -158,14 +133,14 @@ class WipeTask:
         if self.move is None:
             speed = self.robot.limits.velocity * self.cfg.move_speed_fraction
             self.move = JointMove(obs.q_cmd, self.q_start, speed)
-        q = self.move.at(self._t_state)
-        if self._t_state >= self.move.duration:
+        q = self.move.at(self.t_state)
+        if self.t_state >= self.move.duration:
             self.arrived()
         return q, 0.0, False
 
     def _tare(self, obs: Observation, fz: float) -> tuple[np.ndarray, float, bool]:
         # Hold still so the arm settles, then re-zero the force source in free space.
-        if self._t_state + self.dt >= self.cfg.tare_time_s:
+        if self.t_state + self.dt >= self.cfg.tare_time_s:
             self.tared()
             return self.q_start, 0.0, True
         return self.q_start, 0.0, False
@@ -179,12 +154,11 @@ class WipeTask:
             return self._track(obs), self.cfg.contact_threshold_n, False
         self.ref.translation[2] -= self.cfg.approach_speed_mps * self.dt
         if self.pre_contact.translation[2] - self.ref.translation[2] > self.cfg.max_approach_m:
-            self.reason = f"no contact within {self.cfg.max_approach_m * 1000:.0f} mm of approach"
-            self.fail()
+            self.fail_because(f"no contact within {self.cfg.max_approach_m * 1000:.0f} mm of approach")
         return self._track(obs), 0.0, False
 
     def _ramp(self, obs: Observation, fz: float) -> tuple[np.ndarray, float, bool]:
-        a = min(1.0, self._t_state / self.cfg.ramp_time_s)
+        a = min(1.0, self.t_state / self.cfg.ramp_time_s)
         setpoint = self._fz0 + a * (self.cfg.force_setpoint_n - self._fz0)
         self._regulate(fz, setpoint)
         if a >= 1.0:
@@ -198,16 +172,15 @@ class WipeTask:
         self._t_in_band = self._t_in_band + self.dt if abs(fz - sp) < self.cfg.settle_tolerance_n else 0.0
         if self._t_in_band >= self.cfg.settle_time_s:
             self.settled()
-        elif self._t_state > self.cfg.max_settle_s:
-            self.reason = f"force did not settle within {self.cfg.max_settle_s:.1f} s (last {fz:.1f} N)"
-            self.fail()
+        elif self.t_state > self.cfg.max_settle_s:
+            self.fail_because(f"force did not settle within {self.cfg.max_settle_s:.1f} s (last {fz:.1f} N)")
         return self._track(obs), sp, False
 
     def _wipe(self, obs: Observation, fz: float) -> tuple[np.ndarray, float, bool]:
         sp = self.cfg.force_setpoint_n
         self.errors.append(fz - sp)
         self.wipe_forces.append(fz)
-        xy, finished = self.path.at(self._t_state)
+        xy, finished = self.path.at(self.t_state)
         self.ref.translation[0], self.ref.translation[1] = xy
         self._regulate(fz, sp)
         if finished:
@@ -232,14 +205,12 @@ class WipeTask:
         if not np.isfinite(fz):
             return  # hold the reference on a missing reading; the safety monitor counts them
         if fz > self.cfg.max_force_n:
-            self.reason = f"normal force {fz:.1f} N exceeded the task limit {self.cfg.max_force_n:.1f} N"
-            self.fail()
+            self.fail_because(f"normal force {fz:.1f} N exceeded the task limit {self.cfg.max_force_n:.1f} N")
             return
         if self.state in (S.SETTLE, S.WIPE):
             self._t_lost = self._t_lost + self.dt if fz < self.cfg.contact_threshold_n else 0.0
             if self._t_lost >= self.cfg.lost_contact_s:
-                self.reason = f"lost contact with the table for {self._t_lost:.2f} s"
-                self.fail()
+                self.fail_because(f"lost contact with the table for {self._t_lost:.2f} s")
                 return
         dz = float(self.law.update(setpoint - fz)[0])
         self.ref.translation[2] -= dz  # positive error: press further (the tool points down)
@@ -254,7 +225,7 @@ class WipeTask:
         e = np.asarray(self.errors)
         out: dict[str, Any] = {
             "task": self.name,
-            "outcome": "done" if self.state is S.DONE else ("failed" if self.state is S.FAILED else "running"),
+            "outcome": self.outcome,
             "reason": self.reason,
             "final_state": self.state.value,
             "force_setpoint_n": self.cfg.force_setpoint_n,

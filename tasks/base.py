@@ -1,0 +1,57 @@
+"""The shared skeleton of task state machines: Enum states, a `transitions` machine, done/failed, abort."""
+
+from __future__ import annotations
+
+import enum
+import logging
+from typing import Any
+
+from transitions import Machine
+
+log = logging.getLogger(__name__)
+
+
+class MachineTask:
+    """A task whose states are an Enum with DONE and FAILED members; `fail` is allowed from anywhere.
+
+    Subclasses list their forward transitions as (trigger, source, dest) and implement one method
+    per state, `_<state value>(obs, ...)`, that the task's `step` dispatches to.  `t_state` is the
+    time spent in the current state (reset on entry; the subclass advances it by dt per step).
+    """
+
+    name = "task"
+    States: type[enum.Enum]
+
+    def __init__(self, initial: enum.Enum, transitions: list[tuple[str, Any, Any]]) -> None:
+        self.state: Any = initial
+        self.machine = Machine(model=self, states=type(initial), initial=initial, auto_transitions=False,
+                               after_state_change="_entered")
+        for trigger, source, dest in transitions:
+            self.machine.add_transition(trigger, source, dest)
+        self.machine.add_transition("fail", "*", type(initial)["FAILED"])
+        self.reason = ""
+        self.t_state = 0.0
+
+    @property
+    def done(self) -> bool:
+        return self.state.name in ("DONE", "FAILED")
+
+    @property
+    def state_name(self) -> str:
+        return str(self.state.value)
+
+    @property
+    def outcome(self) -> str:
+        return {"DONE": "done", "FAILED": "failed"}.get(self.state.name, "running")
+
+    def abort(self, reason: str) -> None:
+        if not self.done:
+            self.fail_because(reason)
+
+    def fail_because(self, reason: str) -> None:
+        self.reason = reason
+        self.fail()  # type: ignore[attr-defined]  # the trigger `transitions` binds to the model
+
+    def _entered(self) -> None:
+        self.t_state = 0.0
+        log.info("%s: %s", self.name, self.state_name)
