@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import enum
+import logging
 import math
 import threading
 from abc import ABC, abstractmethod
@@ -23,13 +24,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.errors import (
-    CommandRejectedError,
-    DriverError,
-    LifecycleError,
-    LinkLostError,
-    StaleDataError,
-)
+from drivers.errors import CommandRejectedError, DriverError, LifecycleError
+
+log = logging.getLogger(__name__)
 
 
 class Lifecycle(enum.Enum):
@@ -154,6 +151,8 @@ class Arm(ABC):
                 return
             try:
                 self.stop()
+            except DriverError as exc:  # a dead link cannot take a stop; the device's watchdog does
+                log.warning("stop before disconnect failed: %s", exc)
             finally:
                 self._disconnect()
                 self._lifecycle = Lifecycle.DISCONNECTED
@@ -206,7 +205,7 @@ class Arm(ABC):
                 raise LifecycleError("cannot read state: the arm is not connected")
             try:
                 state = self._read_state()
-            except (LinkLostError, StaleDataError) as exc:
+            except DriverError as exc:  # link lost, stale data, a malformed reply: all fault the arm
                 self.fault(str(exc))
                 raise
             for name in ("q", "dq", "tau"):
@@ -237,7 +236,7 @@ class Arm(ABC):
             clipped = bool(np.any(np.abs(q - requested) > 1e-12))
             try:
                 self._write_target(q)
-            except (LinkLostError, StaleDataError) as exc:
+            except DriverError as exc:
                 self.fault(str(exc))
                 raise
             self._last_sent = q

@@ -1,21 +1,29 @@
-"""`bench sim`: real-time factor of the plant plus controller in lock-step, measured on the wiping task."""
+"""Benchmarks: the simulated cell's real-time factor and the wire drivers' cycle times over loopback."""
 
 from __future__ import annotations
 
+import math
+import statistics
 import time
 from typing import Any
+
+import numpy as np
 
 from cell.config import CellConfig, resolve
 from cell.loop import ControlLoop
 from cell.robot import load_robot
 from cell.safety import SafetyMonitor
+from drivers.interfaces import JointLimits
+from drivers.tm5_modbus import N_JOINTS, TM5ModbusArm, TM5ModbusConfig
+from drivers.wacoh import WacohConfig, WacohSensor
 from sim.cell import make_sim_cell
+from sim.tm5_emulator import KinematicPlant, TM5Emulator
+from sim.wacoh_emulator import WacohEmulator
 from tasks.wipe import WipeTask, load_wipe_config
 
 
 def bench_sim(cfg: CellConfig, seed: int | None = None, repeats: int = 2) -> dict[str, Any]:
     """Runs the whole wiping task (no recording) `repeats` times; RTF = simulated / wall seconds."""
-    import numpy as np
 
     robot = load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
     wcfg = load_wipe_config(cfg.tasks.get("wipe"), f"{cfg.source}: tasks.wipe")
@@ -49,3 +57,58 @@ def bench_sim(cfg: CellConfig, seed: int | None = None, repeats: int = 2) -> dic
         "control_period_ms": cfg.loop.period_s * 1e3,
         "physics_substeps": holder.plant.substeps,
     }
+
+
+def bench_modbus(n: int = 500, period_s: float | None = None) -> dict[str, float | int]:
+    """Time `n` cycles of read_state + send_target against the local emulator (KinematicPlant).
+
+    `period_s=None` runs the cycles back to back (pure communication cost); a period paces them like the
+    control loop.  Returns median and 99th percentile of the cycle time in ms.
+    """
+    if n < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    plant = KinematicPlant()
+    limits = JointLimits(lower=np.full(N_JOINTS, -2 * np.pi), upper=np.full(N_JOINTS, 2 * np.pi),
+                         velocity=np.full(N_JOINTS, np.pi), effort=np.full(N_JOINTS, 150.0))
+    times: list[float] = []
+    with TM5Emulator(plant) as emu:
+        arm = TM5ModbusArm(TM5ModbusConfig(host="127.0.0.1", port=emu.port), limits, plant.dt)
+        with arm:
+            arm.arm()
+            q0 = arm.read_state().q
+            for i in range(n):
+                t0 = time.perf_counter()
+                arm.read_state()
+                arm.send_target(q0 + 0.05 * math.sin(2 * math.pi * i / 250))
+                times.append(time.perf_counter() - t0)
+                if period_s is not None:
+                    time.sleep(max(0.0, period_s - (time.perf_counter() - t0)))
+    ms = sorted(t * 1000.0 for t in times)
+    p99 = ms[min(len(ms) - 1, math.ceil(0.99 * len(ms)) - 1)]
+    return {"modbus_cycle_median_ms": statistics.median(ms), "modbus_cycle_p99_ms": p99, "n": n}
+
+
+def bench_serial(n: int = 500) -> dict[str, float | int]:
+    """Time n polled reads (`R` -> parsed Wrench) against the emulator on a pseudo-terminal."""
+    load = np.array([1.0, -2.0, 30.0, 0.1, -0.05, 0.02])
+    with WacohEmulator(lambda: load, seed=0) as emulator:
+        sensor = WacohSensor(WacohConfig(port=emulator.tty_path))
+        with sensor:
+            for _ in range(20):  # warm-up: first reads pay for imports and caches
+                sensor.read()
+            times: list[float] = []
+            for _ in range(n):
+                t0 = time.perf_counter()
+                sensor.read()
+                times.append(time.perf_counter() - t0)
+    ms = sorted(1e3 * t for t in times)
+    return {
+        "serial_read_median_ms": statistics.median(ms),
+        "serial_read_p99_ms": ms[min(len(ms) - 1, math.ceil(0.99 * len(ms)) - 1)],
+        "n": n,
+    }
+
+
+def bench_drivers(n: int = 500) -> dict[str, Any]:
+    """`main.py bench drivers`: one Modbus state read + target write, and one serial `R` to a parsed wrench."""
+    return {**bench_modbus(n), **bench_serial(n)}
