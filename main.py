@@ -40,13 +40,55 @@ def build_task(name: str, cfg: CellConfig, robot: RobotModel) -> tuple[Any, floa
     raise ConfigError(f"unknown task '{name}' (known: {', '.join(TASK_NAMES)})")
 
 
+def cell_kind(cfg: CellConfig, requested: str | None) -> str:
+    """--cell wins; otherwise the config's device kinds, which must agree."""
+    if requested:
+        return requested
+    arm, sensor = cfg.devices.arm.kind, cfg.devices.sensor.kind
+    if arm != sensor:
+        raise ConfigError(f"{cfg.source}: devices.arm.kind ({arm}) and devices.sensor.kind ({sensor}) differ; "
+                          "mixed cells are not supported yet")
+    return arm
+
+
+class RealCell:
+    """The physical cell: drivers from config, paced by the wall clock."""
+
+    def __init__(self, cfg: CellConfig, robot: RobotModel) -> None:
+        from drivers.real_cell import make_real_devices
+
+        self.period = cfg.loop.period_s
+        self.devices = make_real_devices(cfg.devices.arm.settings, cfg.devices.sensor.settings, robot.limits,
+                                         cfg.loop.period_s, f"{cfg.source}: devices")
+
+    def open(self) -> Any:
+        from cell.force import SensorForceSource
+        from cell.loop import OpenCell, WallTicker
+
+        d = self.devices
+        assert d.sensor is not None and d.sensor_cfg is not None
+        d.arm.connect()
+        d.sensor.connect()
+        return OpenCell(kind="real", arm=d.arm, force=SensorForceSource(d.sensor, d.sensor_cfg.tare_samples),
+                        ticker=WallTicker(self.period))
+
+    def close(self) -> None:
+        self.devices.close()
+
+
 def open_cell(cfg: CellConfig, kind: str, robot: RobotModel, seed: int | None, scene: str | None) -> Any:
     """Returns an object with .open() -> OpenCell and .close()."""
     if kind == "sim":
         from sim.cell import make_sim_cell
 
         return make_sim_cell(cfg, robot.limits, seed=seed, scene_kind=scene)
-    raise ConfigError(f"--cell {kind}: not available yet in this build (use --cell sim)")
+    if kind == "emulated":
+        from sim.emulated import EmulatedCell
+
+        return EmulatedCell(cfg, robot.limits, seed=seed, scene_kind=scene)
+    if kind == "real":
+        return RealCell(cfg, robot)
+    raise ConfigError(f"unknown cell kind '{kind}' (sim, emulated, real)")
 
 
 # --------------------------------------------------------------------------------------- commands
@@ -60,9 +102,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         )
     robot = robot_for(cfg, "wipe")
     task, max_duration = build_task(args.task, cfg, robot)
-    holder = open_cell(cfg, args.cell, robot, args.seed, "table")
-    cell = holder.open()
+    holder = open_cell(cfg, cell_kind(cfg, args.cell), robot, args.seed, "table")
     try:
+        cell = holder.open()
         from tasks.runner import run_task
 
         summary = run_task(task, cell, cfg, robot, max_duration, record=not args.no_record,
@@ -78,9 +120,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_status(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     robot = robot_for(cfg, "wipe")
-    holder = open_cell(cfg, args.cell, robot, args.seed, None)
-    cell = holder.open()
+    holder = open_cell(cfg, cell_kind(cfg, args.cell), robot, args.seed, None)
     try:
+        cell = holder.open()
         state = cell.arm.read_state()
         wrench = cell.force.read(state)
         tcp = robot.tcp_pose(state.q).translation
@@ -91,7 +133,7 @@ def cmd_status(args: argparse.Namespace) -> int:
             "q_deg": np.degrees(state.q).round(3).tolist(),
             "dq_deg_s": np.degrees(state.dq).round(3).tolist(),
             "tau_nm": np.round(state.tau, 3).tolist(),
-            "status": vars(state.status) if hasattr(state.status, "__dict__") else str(state.status),
+            "status": {k: bool(v) for k, v in vars(state.status).items()},
             "tcp_m": np.round(tcp, 4).tolist(),
             "wrench": np.round(wrench.vector, 3).tolist(),
         }
@@ -106,6 +148,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from sim.bench import bench_sim
 
         out = bench_sim(load_config(args.config), seed=args.seed)
+    elif args.what == "drivers":
+        from sim.bench import bench_drivers
+
+        out = bench_drivers(args.n)
     elif args.what == "plant":
         from sim.characterise import characterise_plant
 
@@ -154,13 +200,40 @@ def cmd_plan(args: argparse.Namespace) -> int:
     collisions = CollisionChecker(robot, replace(cfg.scene, kind="free"))
 
     def open_for_plan() -> tuple[Any, Any]:
-        holder = open_cell(cfg, args.cell, robot, args.seed, "free")
-        return holder.open(), holder
+        holder = open_cell(cfg, cell_kind(cfg, args.cell), robot, args.seed, "free")
+        try:
+            return holder.open(), holder
+        except BaseException:
+            holder.close()
+            raise
 
     out = run_plans(cfg, robot, predictor, model_name, plan_file, open_for_plan, collisions,
                     Path(cfg.recording.directory) / "plans", only)
     _emit(out, args.json)
     return 0
+
+
+def cmd_emulate(args: argparse.Namespace) -> int:
+    """Serve one device emulator until Ctrl+C (for standard tools or a second process)."""
+    if args.device == "cell":
+        from sim.emulated import serve_cell
+
+        cfg = load_config(args.config)
+        if args.plant:
+            cfg.plant = str(Path(args.plant).resolve())
+        return serve_cell(cfg, args.seed, args.scene or cfg.scene.kind)
+    if args.device == "arm":
+        from sim.tm5_emulator import emulate_arm_main
+
+        plant = None
+        if not args.kinematic:
+            from sim.cell import make_plant
+
+            plant = make_plant(load_config(args.config), args.seed, "free")
+        return emulate_arm_main(args.port, plant)
+    from sim.wacoh_emulator import emulate_sensor_main
+
+    return emulate_sensor_main(args.seed or 0)
 
 
 def _emit(out: dict[str, Any], as_json: bool) -> None:
@@ -202,7 +275,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="run a task on a cell")
     run.add_argument("task", choices=TASK_NAMES)
-    run.add_argument("--cell", choices=("sim", "emulated", "real"), default="sim")
+    run.add_argument("--cell", choices=("sim", "emulated", "real"), default=None,
+                     help="default: devices.*.kind from the config")
     run.add_argument("--force-source", choices=("sensor", "virtual"), default="sensor")
     run.add_argument("--plant", default=None, help="plant profile YAML (sim cells)")
     run.add_argument("--no-record", action="store_true", help="do not write runs/<...>/")
@@ -210,7 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(func=cmd_run)
 
     st = sub.add_parser("status", help="connect to the cell and print its state")
-    st.add_argument("--cell", choices=("sim", "emulated", "real"), default="sim")
+    st.add_argument("--cell", choices=("sim", "emulated", "real"), default=None)
     common(st)
     st.set_defaults(func=cmd_status)
 
@@ -219,12 +293,24 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--path", action="append", help="only this named path (repeatable)")
     pl.add_argument("--waypoints", default=None, help="'j1,..,j6; j1,..,j6; ...' in degrees instead of --plans paths")
     pl.add_argument("--model", default=None, help="torque model artefact (default: nominal rigid body)")
-    pl.add_argument("--cell", choices=("sim", "emulated", "real"), default="sim")
+    pl.add_argument("--cell", choices=("sim", "emulated", "real"), default=None)
     common(pl)
     pl.set_defaults(func=cmd_plan)
 
+    em = sub.add_parser("emulate", help="serve a device emulator on this machine until Ctrl+C")
+    em.add_argument("device", choices=("arm", "sensor", "cell"),
+                    help="cell: plant + arm + sensor emulators, endpoints as JSON on stdout, faults on stdin")
+    em.add_argument("--port", type=int, default=5020, help="TCP port for the arm emulator (127.0.0.1)")
+    em.add_argument("--kinematic", action="store_true", help="arm: a simple kinematic plant instead of MuJoCo")
+    em.add_argument("--config", type=Path, default=None)
+    em.add_argument("--seed", type=int, default=None)
+    em.add_argument("--plant", default=None, help="plant profile YAML")
+    em.add_argument("--scene", choices=("free", "table", "peg"), default=None)
+    em.set_defaults(func=cmd_emulate)
+
     b = sub.add_parser("bench", help="benchmarks that print the project's measured figures")
-    b.add_argument("what", choices=("sim", "plant"))
+    b.add_argument("what", choices=("sim", "plant", "drivers"))
+    b.add_argument("--n", type=int, default=500, help="samples (bench drivers)")
     b.add_argument("--plant", default=None, help="plant profile YAML (bench plant)")
     common(b)
     b.set_defaults(func=cmd_bench)
@@ -237,6 +323,8 @@ def main(argv: list[str] | None = None) -> int:
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     logging.getLogger("transitions").setLevel(logging.WARNING)
+    # pymodbus logs every failed connect at ERROR; the driver reports link loss itself.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     try:
         return int(args.func(args))
     except CellError as exc:

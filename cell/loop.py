@@ -84,11 +84,18 @@ class OpenCell:
 
 
 class WallTicker:
-    """Sleeps until the next period boundary; counts overruns."""
+    """Fixed-rate pacing: sleeps until the next period boundary; counts overruns.
 
-    def __init__(self, period: float) -> None:
+    After an overrun the schedule is kept (the next cycle starts at once), so the host sends as many
+    targets per second as the controller consumes and a jitter buffer on the robot side absorbs the
+    lateness; only when more than `max_lag` periods behind does it give up and resynchronise.
+    """
+
+    def __init__(self, period: float, max_lag: int = 3) -> None:
         self.period = period
+        self.max_lag = max_lag
         self.overruns = 0
+        self.resyncs = 0
         self._next = 0.0
 
     def start(self) -> None:
@@ -98,7 +105,11 @@ class WallTicker:
         now = time.perf_counter()
         if now > self._next:
             self.overruns += 1
-            self._next = now + self.period
+            if now - self._next > self.max_lag * self.period:
+                self.resyncs += 1
+                self._next = now + self.period
+            else:
+                self._next += self.period
             return
         time.sleep(self._next - now)
         self._next += self.period

@@ -11,7 +11,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Coroutine
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, TypeVar
 
 import numpy as np
@@ -160,6 +160,12 @@ class EmulatorFaults:
         return self.exception_code if now < self.exceptions_until else None
 
 
+# The robot-side program plays the host's targets this many cycles behind the newest (a jitter
+# buffer), and bridges a late host for at most MAX_EXTRAPOLATION cycles.
+JITTER_DELAY_CYCLES = 1
+MAX_EXTRAPOLATION = 3
+
+
 @dataclass
 class RobotProgramState:
     """What the robot-side program (docs/robot-side-program.md) remembers between its cycles."""
@@ -170,6 +176,10 @@ class RobotProgramState:
     executing: bool = False
     held: bool = False  # latched protective hold (host STOP, bad targets, pause)
     watchdog: bool = False  # latched: host heartbeat stalled while tracking
+    # Jitter buffer: targets received this tracking session, by host sequence number, and the
+    # sequence number the servo plays this cycle (one behind the newest expected).
+    received: dict[int, np.ndarray] = field(default_factory=dict)
+    play_seq: int | None = None
 
     @property
     def flags(self) -> RobotFlags:
@@ -486,16 +496,52 @@ class TM5Emulator:
                 if not np.all(np.isfinite(targets)):
                     self._hold(f"non-finite joint targets {targets!r}")
                     return
-                self.plant.set_target(targets)
+                if not prog.executing:
+                    prog.received.clear()
+                    prog.play_seq = seq - JITTER_DELAY_CYCLES
+                prog.received[seq] = targets
                 prog.executing = True
             elif prog.executing and prog.stalled_cycles >= self.watchdog_cycles:
                 self._hold(f"host heartbeat stalled for {prog.stalled_cycles} cycles", watchdog=True)
+                return
+            if prog.executing:
+                self._play_next()
         elif command == Command.IDLE:
             prog.executing = False
             if advanced and (prog.held or prog.watchdog or self.plant.measured_state().status.protective_stop):
                 self._release()
         else:
             self._hold(f"unknown host command {command}")
+
+    def _play_next(self) -> None:
+        """Hand the servo one target per cycle, by host sequence number, one cycle behind the newest
+        expected: a host that is a cycle late costs nothing, a skipped sequence is interpolated, and a
+        host that falls further behind is extrapolated for at most MAX_EXTRAPOLATION cycles."""
+        prog = self.program
+        assert prog.play_seq is not None
+        prog.play_seq += 1
+        i = prog.play_seq
+        known = sorted(prog.received)
+        target = prog.received.get(i)
+        if target is None:
+            below = [k for k in known if k < i]
+            above = [k for k in known if k > i]
+            if below and above:  # the host wrote twice between two of our reads
+                a, b = below[-1], above[0]
+                target = prog.received[a] + (prog.received[b] - prog.received[a]) * (i - a) / (b - a)
+            elif len(below) >= 2 and i - below[-1] <= MAX_EXTRAPOLATION:  # the host is late
+                a, b = below[-2], below[-1]
+                target = prog.received[b] + (prog.received[b] - prog.received[a]) * (i - b) / (b - a)
+            elif below:
+                # Too late for too long: stand still where we are, and resume from the host's next
+                # target when it comes (the watchdog stops the arm if it never does).
+                prog.play_seq = below[-1]
+                return
+            else:
+                return  # nothing to play yet
+        for k in [k for k in known if k < i - 4]:
+            del prog.received[k]
+        self.plant.set_target(target)
 
     def _hold(self, why: str, *, watchdog: bool = False) -> None:
         prog = self.program

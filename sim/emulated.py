@@ -1,0 +1,182 @@
+"""The emulated cell: the *real* drivers over loopback against emulators that follow the MuJoCo plant.
+
+The plant and both emulators run in their own process (`main.py emulate cell`), as the robot and the
+sensor are separate machines: the host's control loop then does not share an interpreter with them.
+That process prints one JSON line `{"port": ..., "tty": ...}` and takes fault-injection commands on
+stdin, one per line (`drop_link 1.5`, `freeze 2`, `unfreeze`, `delay 20 1.0`, `exceptions 1.0`,
+`clear`, `sensor garbage 0.3`, `sensor split 0.5`, `sensor drop 0.2`, `sensor clear`, `quit`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from cell.config import CellConfig, resolve
+from cell.force import SensorForceSource
+from cell.loop import OpenCell, WallTicker
+from drivers.errors import ConfigError, DriverError, LinkLostError
+from drivers.interfaces import JointLimits
+from drivers.tm5_modbus import TM5ModbusArm, TM5ModbusConfig, UserAreaLayout
+from drivers.wacoh import WacohConfig, WacohSensor
+
+log = logging.getLogger(__name__)
+
+MAIN = Path(__file__).resolve().parents[1] / "main.py"
+START_TIMEOUT_S = 30.0
+
+# Settings the emulated cell chooses itself (where the emulators listen); the rest come from config.
+_ARM_OWNED = ("host", "port")
+_SENSOR_OWNED = ("port",)
+
+
+def _settings(raw: dict[str, Any], owned: tuple[str, ...], where: str) -> dict[str, Any]:
+    clash = [k for k in owned if k in raw]
+    if clash:
+        raise ConfigError(f"{where}.{clash[0]} is chosen by the emulated cell; remove it or use --cell real")
+    return dict(raw)
+
+
+class EmulatedCell:
+    """Starts `main.py emulate cell` in a child process, then connects the real drivers to it."""
+
+    def __init__(self, cfg: CellConfig, limits: JointLimits, seed: int | None = None,
+                 scene_kind: str | None = None) -> None:
+        where = f"{cfg.source}: devices"
+        arm_raw = _settings(cfg.devices.arm.settings, _ARM_OWNED, f"{where}.arm.settings")
+        sensor_raw = _settings(cfg.devices.sensor.settings, _SENSOR_OWNED, f"{where}.sensor.settings")
+        UserAreaLayout.from_dict(arm_raw.get("user_area", {}), f"{where}.arm.settings.user_area")
+        self.period = cfg.loop.period_s
+        cmd = [sys.executable, str(MAIN), "-q", "emulate", "cell", "--config", cfg.source,
+               "--plant", str(resolve(cfg.plant)),
+               "--scene", scene_kind or cfg.scene.kind]
+        if seed is not None:
+            cmd += ["--seed", str(seed)]
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
+        try:
+            endpoint = self._read_endpoint()
+            arm_cfg = TM5ModbusConfig.from_dict({**arm_raw, "host": "127.0.0.1", "port": endpoint["port"]},
+                                                f"{where}.arm.settings")
+            self.sensor_cfg = WacohConfig.from_dict({**sensor_raw, "port": endpoint["tty"]},
+                                                    f"{where}.sensor.settings")
+        except BaseException:
+            self._stop_process()
+            raise
+        self.arm = TM5ModbusArm(arm_cfg, limits, cfg.loop.period_s)
+        self.sensor = WacohSensor(self.sensor_cfg)
+        log.info("emulated cell: arm on 127.0.0.1:%d, sensor on %s (pid %d)", endpoint["port"], endpoint["tty"],
+                 self.proc.pid)
+
+    def _read_endpoint(self) -> dict[str, Any]:
+        assert self.proc.stdout is not None
+        line: list[str] = []
+        reader = threading.Thread(target=lambda: line.append(self.proc.stdout.readline()), daemon=True)  # type: ignore[union-attr]
+        reader.start()
+        reader.join(START_TIMEOUT_S)
+        if not line:
+            raise LinkLostError(f"the cell emulator did not report its endpoints within {START_TIMEOUT_S:.0f} s")
+        if not line[0].strip():
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.proc.wait(timeout=2)
+            raise LinkLostError(f"the cell emulator exited before it started (exit code {self.proc.poll()}); "
+                                "its error is printed above")
+        return json.loads(line[0])
+
+    def inject(self, command: str) -> None:
+        """Send one fault-injection command to the emulator process (see the module docstring)."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(command.strip() + "\n")
+        self.proc.stdin.flush()
+
+    def open(self) -> OpenCell:
+        self.arm.connect()
+        self.sensor.connect()
+        return OpenCell(kind="emulated", arm=self.arm,
+                        force=SensorForceSource(self.sensor, self.sensor_cfg.tare_samples),
+                        ticker=WallTicker(self.period))
+
+    def close(self) -> None:
+        for device in (getattr(self, "arm", None), getattr(self, "sensor", None)):
+            if device is not None:
+                with contextlib.suppress(DriverError):
+                    device.disconnect()
+        self._stop_process()
+
+    def _stop_process(self) -> None:
+        if self.proc.poll() is None:
+            with contextlib.suppress(OSError, ValueError):
+                self.inject("quit")
+                assert self.proc.stdin is not None
+                self.proc.stdin.close()
+            try:
+                self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=5)
+        for stream in (self.proc.stdin, self.proc.stdout):
+            with contextlib.suppress(OSError, ValueError):
+                if stream is not None:
+                    stream.close()
+
+
+def serve_cell(cfg: CellConfig, seed: int | None, scene: str) -> int:
+    """`main.py emulate cell`: plant + TM5 emulator + WACOH emulator until stdin closes or says quit."""
+    from sim.cell import make_plant
+    from sim.tm5_emulator import TM5Emulator
+    from sim.wacoh_emulator import FaultConfig, WacohEmulator
+
+    layout = UserAreaLayout.from_dict(cfg.devices.arm.settings.get("user_area", {}),
+                                      f"{cfg.source}: devices.arm.settings.user_area")
+    plant = make_plant(cfg, seed, scene)
+    sensor_faults = FaultConfig()
+    with TM5Emulator(plant, layout=layout) as arm_emu, \
+            WacohEmulator(plant.true_sensor_wrench, seed=plant.profile.seed, faults=sensor_faults) as sensor_emu:
+        print(json.dumps({"port": arm_emu.port, "tty": sensor_emu.tty_path}), flush=True)
+        for line in sys.stdin:
+            words = line.split()
+            if not words:
+                continue
+            if words[0] == "quit":
+                break
+            try:
+                _apply(words, arm_emu, sensor_faults)
+            except (ValueError, IndexError, AttributeError) as exc:
+                log.error("emulator: cannot apply %r: %s", line.strip(), exc)
+    return 0
+
+
+def _apply(words: list[str], arm_emu: Any, sensor_faults: Any) -> None:
+    head, args = words[0], [float(w) for w in words[1:] if w.replace(".", "", 1).isdigit()]
+    if head == "drop_link":
+        arm_emu.drop_link(args[0])
+    elif head == "freeze":
+        arm_emu.freeze(args[0] if args else None)
+    elif head == "unfreeze":
+        arm_emu.unfreeze()
+    elif head == "delay":
+        arm_emu.delay_replies(args[0], args[1] if len(args) > 1 else None)
+    elif head == "exceptions":
+        arm_emu.inject_exceptions(args[0] if args else None)
+    elif head == "clear":
+        arm_emu.clear_faults()
+    elif head == "sensor":
+        kind = words[1]
+        p = float(words[2]) if len(words) > 2 else 0.0
+        if kind == "garbage":
+            sensor_faults.garbage_prob = p
+        elif kind == "split":
+            sensor_faults.split_prob = p
+        elif kind == "drop":
+            sensor_faults.drop_reply_prob = p
+        elif kind == "clear":
+            sensor_faults.garbage_prob = sensor_faults.split_prob = sensor_faults.drop_reply_prob = 0.0
+        else:
+            raise ValueError(f"unknown sensor fault '{kind}'")
+    else:
+        raise ValueError(f"unknown command '{head}'")
