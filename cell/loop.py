@@ -224,7 +224,7 @@ class ControlLoop:
                 obs = Observation(t=cycle * self.period, cycle=cycle, state=state, wrench=wrench, q_cmd=q_cmd)
                 self._record(obs, Command(q=q_cmd), q_cmd, False, truth, 0.0)
         except DriverError as exc:
-            outcome, reason = "fault", str(exc)
+            outcome, reason = "fault", f"{exc.kind}: {exc}"
             self.task.abort(f"driver fault: {exc}")
             log.error("driver fault: %s", exc)
         except CellError as exc:

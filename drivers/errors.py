@@ -24,25 +24,37 @@ class DataError(CellError):
 class DriverError(CellError):
     """Something went wrong at the hardware boundary."""
 
+    kind = "driver error"
+
 
 class LinkLostError(DriverError):
     """The connection to a device is gone (socket closed, port vanished, no reply in time)."""
+
+    kind = "link lost"
 
 
 class StaleDataError(DriverError):
     """The device answers but its data stopped advancing (frozen counter or timestamp)."""
 
+    kind = "stale data"
+
 
 class ProtocolError(DriverError):
     """A reply did not follow the protocol (bad frame, bad length, exception reply)."""
+
+    kind = "protocol error"
 
 
 class LifecycleError(DriverError):
     """A call is not allowed in the device's current lifecycle state (e.g. a command before arming)."""
 
+    kind = "not allowed now"
+
 
 class CommandRejectedError(DriverError):
     """A command was refused before reaching the device (NaN/inf, wrong shape)."""
+
+    kind = "command rejected"
 
 
 class SafetyStopError(CellError):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -267,7 +268,9 @@ class Plant:
 
     # ----------------------------------------------------------------------------- views
     def measured_state(self) -> ArmState:
-        return self._history[0]
+        """The delayed sample (torque-sensing latency), with the controller's status flags as they are now."""
+        sample = self._history[0]
+        return sample if sample.status == self.status else dataclasses.replace(sample, status=self.status)
 
     def true_state(self) -> ArmState:
         return self._history[-1]
