@@ -256,11 +256,16 @@ class ControlLoop:
             timing={**timing, "missed_deadlines": overruns},
         )
 
-    def _shutdown(self) -> None:
-        try:
-            self.arm.stop()
-        except Exception as exc:  # the arm's own watchdog stops it if we cannot reach it
-            log.error("could not command a stop: %s", exc)
+    def _shutdown(self, attempts: int = 3) -> None:
+        for attempt in range(1, attempts + 1):
+            try:
+                self.arm.stop()
+                break
+            except Exception as exc:  # the arm's own watchdog stops it if we cannot reach it
+                if attempt == attempts:
+                    log.error("could not command a stop (%d attempts): %s", attempts, exc)
+                else:
+                    time.sleep(self.period)
         if self.recorder is not None:
             self.recorder.close()
 

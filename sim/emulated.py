@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import signal
 import subprocess
 import sys
 import threading
@@ -131,6 +132,10 @@ def serve_cell(cfg: CellConfig, seed: int | None, scene: str) -> int:
     from sim.tm5_emulator import TM5Emulator
     from sim.wacoh_emulator import FaultConfig, WacohEmulator
 
+    if not sys.stdin.isatty():
+        # Driven by a host through a pipe: a terminal's Ctrl+C is for the host, which stops the arm
+        # through us and then closes our stdin.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     layout = UserAreaLayout.from_dict(cfg.devices.arm.settings.get("user_area", {}),
                                       f"{cfg.source}: devices.arm.settings.user_area")
     plant = make_plant(cfg, seed, scene)

@@ -114,3 +114,38 @@ def test_status_over_the_wire(capsys):
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["cell"] == "emulated"
     np.testing.assert_allclose(out["q_deg"], [0, 0, 90, 0, 90, 0], atol=0.05)
+
+
+def test_ctrl_c_in_a_terminal_stops_the_arm_and_keeps_the_recording(tmp_path):
+    """SIGINT to the whole foreground process group (host and emulator child), as a terminal sends it."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from cell.config import ROOT
+
+    proc = subprocess.Popen([sys.executable, str(ROOT / "main.py"), "-q", "run", "wipe", "--cell", "emulated",
+                             "--json"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    time.sleep(6.0)
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["outcome"] == "interrupted"
+    assert "could not command a stop" not in err and "Traceback" not in err
+    run = tmp_path / summary["run_dir"]
+    assert read_log(run).num_rows == summary["cycles"] > 100
+    assert json.loads((run / "summary.json").read_text())["outcome"] == "interrupted"
+    # Nothing of the session is left running (the emulator child exited with its host).
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        pytest.fail("a process of the interrupted run is still alive")
