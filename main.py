@@ -168,7 +168,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[Any, str]:
     """The torque predictor the planner uses: a saved model artefact, or the nominal rigid body (P1)."""
     if path:
-        from cell.dynamics.io import load_model  # the model lab's artefacts
+        from cell.dynamics.artefact import load_model  # the model lab's artefacts
 
         model = load_model(Path(path), robot)
         return model.predict, f"{model.meta.kind} ({path})"
