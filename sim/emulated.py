@@ -3,8 +3,9 @@
 The plant and both emulators run in their own process (`main.py emulate cell`), as the robot and the
 sensor are separate machines: the host's control loop then does not share an interpreter with them.
 That process prints one JSON line `{"port": ..., "tty": ...}` and takes fault-injection commands on
-stdin, one per line (`drop_link 1.5`, `freeze 2`, `unfreeze`, `delay 20 1.0`, `exceptions 1.0`,
-`clear`, `sensor garbage 0.3`, `sensor split 0.5`, `sensor drop 0.2`, `sensor clear`, `quit`).
+stdin, one per line, each answered by `{"ack": ...}` (or `{"error": ...}`) once in effect:
+`drop_link 1.5`, `freeze 2`, `unfreeze`, `delay 20 1.0`, `exceptions 1.0`, `clear`,
+`sensor garbage 0.3`, `sensor split 0.5`, `sensor drop 0.2`, `sensor clear`, `quit`.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import select
 import signal
 import subprocess
 import sys
@@ -89,11 +91,20 @@ class EmulatedCell:
                                 "its error is printed above")
         return json.loads(line[0])
 
-    def inject(self, command: str) -> None:
-        """Send one fault-injection command to the emulator process (see the module docstring)."""
-        assert self.proc.stdin is not None
+    def inject(self, command: str, timeout_s: float = 2.0) -> None:
+        """Send one fault-injection command to the emulator process and wait until it is in effect."""
+        assert self.proc.stdin is not None and self.proc.stdout is not None
         self.proc.stdin.write(command.strip() + "\n")
         self.proc.stdin.flush()
+        if command.strip() == "quit":
+            return
+        ready, _, _ = select.select([self.proc.stdout], [], [], timeout_s)
+        reply = self.proc.stdout.readline() if ready else ""
+        if not reply.strip():
+            raise LinkLostError(f"the cell emulator did not acknowledge '{command.strip()}'")
+        ack = json.loads(reply)
+        if "error" in ack:
+            raise ValueError(f"the cell emulator refused '{command.strip()}': {ack['error']}")
 
     def open(self) -> OpenCell:
         self.arm.connect()
@@ -151,8 +162,9 @@ def serve_cell(cfg: CellConfig, seed: int | None, scene: str) -> int:
                 break
             try:
                 _apply(words, arm_emu, sensor_faults)
+                print(json.dumps({"ack": line.strip()}), flush=True)
             except (ValueError, IndexError, AttributeError) as exc:
-                log.error("emulator: cannot apply %r: %s", line.strip(), exc)
+                print(json.dumps({"error": f"{exc}"}), flush=True)
     return 0
 
 
