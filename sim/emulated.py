@@ -37,6 +37,11 @@ START_TIMEOUT_S = 30.0
 # Settings the emulated cell chooses itself (where the emulators listen); the rest come from config.
 _ARM_OWNED = ("host", "port")
 _SENSOR_OWNED = ("port",)
+# The emulators share this machine's CPU with the host (a real controller and sensor do not), so a
+# reply may come late when the machine is busy: allow this much before calling the link lost.  A
+# dropped connection is still noticed at once, and frozen data by its own stale limit.
+EMULATED_MIN_TIMEOUT_S = 0.05
+EMULATED_MIN_STALE_S = 0.1
 
 
 def _settings(raw: dict[str, Any], owned: tuple[str, ...], where: str) -> dict[str, Any]:
@@ -64,10 +69,14 @@ class EmulatedCell:
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
         try:
             endpoint = self._read_endpoint()
-            arm_cfg = TM5ModbusConfig.from_dict({**arm_raw, "host": "127.0.0.1", "port": endpoint["port"]},
-                                                f"{where}.arm.settings")
-            self.sensor_cfg = WacohConfig.from_dict({**sensor_raw, "port": endpoint["tty"]},
-                                                    f"{where}.sensor.settings")
+            arm_timeout = max(float(arm_raw.get("timeout_s", 0.0)), EMULATED_MIN_TIMEOUT_S)
+            sensor_timeout = max(float(sensor_raw.get("timeout_s", 0.0)), EMULATED_MIN_TIMEOUT_S)
+            stale = max(float(arm_raw.get("stale_after_s", 0.0)), EMULATED_MIN_STALE_S)
+            arm_cfg = TM5ModbusConfig.from_dict(
+                {**arm_raw, "host": "127.0.0.1", "port": endpoint["port"], "timeout_s": arm_timeout,
+                 "stale_after_s": stale}, f"{where}.arm.settings")
+            self.sensor_cfg = WacohConfig.from_dict(
+                {**sensor_raw, "port": endpoint["tty"], "timeout_s": sensor_timeout}, f"{where}.sensor.settings")
         except BaseException:
             self._stop_process()
             raise
