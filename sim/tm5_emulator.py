@@ -162,7 +162,7 @@ class EmulatorFaults:
 
 # The robot-side program plays the host's targets this many cycles behind the newest (a jitter
 # buffer), and bridges a late host for at most MAX_EXTRAPOLATION cycles.
-JITTER_DELAY_CYCLES = 1
+JITTER_DELAY_CYCLES = 2
 MAX_EXTRAPOLATION = 3
 
 

@@ -49,7 +49,7 @@ class WipeConfig:
     accel_mps2: float = 0.15
     retract_height_m: float = 0.05
     retract_speed_mps: float = 0.05
-    move_speed_fraction: float = 0.25  # of the joint speed limits, for the move to the start pose
+    move_speed_fraction: float = 0.15  # of the joint speed limits, for the move to the start pose
     tare_time_s: float = 0.3
     max_force_n: float = 110.0  # task-level abort (the cell's safety limit is separate)
     lost_contact_s: float = 0.25
