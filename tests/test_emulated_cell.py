@@ -128,7 +128,10 @@ def test_ctrl_c_in_a_terminal_stops_the_arm_and_keeps_the_recording(tmp_path):
 
     proc = subprocess.Popen([sys.executable, str(ROOT / "main.py"), "-q", "run", "wipe", "--cell", "emulated",
                              "--json"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True,
+                            # The runner may ignore SIGINT (a background job does); a terminal's
+                            # process would not, so restore the default before exec.
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(6.0)
     os.killpg(proc.pid, signal.SIGINT)
     out, err = proc.communicate(timeout=30)
