@@ -135,8 +135,10 @@ def emulator(plant: FakePlant) -> Iterator[TM5Emulator]:
 
 
 def make_arm(emu: TM5Emulator, **overrides: Any) -> TM5ModbusArm:
+    # 30 ms reply timeout: the emulator shares this process (and a busy CI machine); a silent
+    # controller is still detected well inside LINK_LOSS_BOUND_S.
     settings: dict[str, Any] = {"host": "127.0.0.1", "port": emu.port, "reconnect_initial_s": 0.02,
-                                "reconnect_max_s": 0.1, **overrides}
+                                "reconnect_max_s": 0.1, "timeout_s": 0.03, **overrides}
     return TM5ModbusArm(TM5ModbusConfig(**settings), LIMITS, DT)
 
 
