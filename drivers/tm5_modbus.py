@@ -16,7 +16,7 @@ from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu import ModbusPDU
 
-from drivers.errors import ConfigError, LifecycleError, LinkLostError, ProtocolError, StaleDataError
+from drivers.errors import ConfigError, DriverError, LifecycleError, LinkLostError, ProtocolError, StaleDataError
 from drivers.interfaces import Arm, ArmState, ArmStatus, JointLimits, Lifecycle
 
 log = logging.getLogger(__name__)
@@ -479,15 +479,23 @@ class TM5ModbusArm(Arm):
             log.warning("TM5ModbusArm %s: the real-hardware path is UNTESTED on a physical arm (it has only run "
                         "against sim.tm5_emulator); keep a hand on the E-stop", self.endpoint)
             self._warned_untested = True
-        self._next_attempt = 0.0
-        self._open_link()
-        try:
-            # Start our heartbeat right after whatever the robot last acted upon, so a restarted host
-            # never repeats a sequence number the robot-side program would ignore.
-            self._host_seq = self._read_robot_block().host_seq_echo
-        except Exception:
-            self._close_link("connect failed")
-            raise
+        # A first contact may be slow (a controller just booted, a busy machine): keep trying for
+        # arm_timeout_s before giving up, as arming does.
+        # A refused connection (nobody listening) fails at once.
+        deadline = time.monotonic() + self.config.arm_timeout_s
+        while True:
+            self._next_attempt = 0.0
+            self._open_link()
+            try:
+                # Start our heartbeat right after whatever the robot last acted upon, so a restarted
+                # host never repeats a sequence number the robot-side program would ignore.
+                self._host_seq = self._read_robot_block().host_seq_echo
+                return
+            except DriverError:
+                self._close_link("connect failed")
+                if time.monotonic() >= deadline:
+                    raise
+                time.sleep(self.config.reconnect_initial_s)
 
     def _disconnect(self) -> None:
         self._close_link("disconnected")
