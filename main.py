@@ -152,6 +152,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from sim.bench import bench_drivers
 
         out = bench_drivers(args.n)
+    elif args.what == "model":
+        from tasks import lab
+
+        if not args.data:
+            raise ConfigError("bench model needs --data DATASET.yaml (make one with main.py collect)")
+        out = lab.bench_model(_lab_config(args), Path(args.data), Path(args.model) if args.model else None,
+                              train_samples=args.train_samples, fit_samples=args.fit_samples,
+                              calls=args.calls, nthread=args.nthread)
     elif args.what == "plant":
         from sim.characterise import characterise_plant
 
@@ -209,6 +217,52 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
     out = run_plans(cfg, robot, predictor, model_name, plan_file, open_for_plan, collisions,
                     Path(cfg.recording.directory) / "plans", only)
+    _emit(out, args.json)
+    return 0
+
+
+def _lab_config(args: argparse.Namespace) -> CellConfig:
+    cfg = load_config(args.config)
+    if getattr(args, "plant", None):
+        cfg.plant = str(Path(args.plant).resolve())
+    return cfg
+
+
+def cmd_collect(args: argparse.Namespace) -> int:
+    from tasks import lab
+
+    cfg = _lab_config(args)
+    robot = lab.lab_robot(cfg)
+    kind = cell_kind(cfg, args.cell)
+
+    def opener() -> Any:
+        return open_cell(cfg, kind, robot, args.seed, "free")
+
+    out = lab.collect(cfg, opener, Path(args.out), samples=args.samples, family=args.family,
+                      fourier_share=args.fourier_share, test_trajectories=args.test_trajectories,
+                      test_repeats=args.test_repeats, test_moves=args.test_moves,
+                      excitation=args.excitation, seed=args.plan_seed)
+    _emit(out, args.json)
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from tasks import lab
+
+    out = lab.train(_lab_config(args), Path(args.data), Path(args.out), kind=args.model, samples=args.samples,
+                    window=args.window, grouping=args.grouping, derivatives=args.derivatives,
+                    nthread=args.nthread, seed=args.seed or 0)
+    _emit(out, args.json)
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from tasks import lab
+
+    curve = None if args.no_curve else [int(v) for v in args.curve.split(",")] if args.curve else lab.DEFAULT_CURVE
+    out = lab.evaluate(_lab_config(args), Path(args.data), Path(args.out), train_samples=args.train_samples,
+                       large_samples=args.large_samples, curve=curve, nthread=args.nthread, seed=args.seed or 0,
+                       max_trees=args.max_trees)
     _emit(out, args.json)
     return 0
 
@@ -297,6 +351,48 @@ def build_parser() -> argparse.ArgumentParser:
     common(pl)
     pl.set_defaults(func=cmd_plan)
 
+    co = sub.add_parser("collect", help="run excitation and test trajectories on a cell; write a dataset")
+    co.add_argument("--cell", choices=("sim", "emulated", "real"), default=None)
+    co.add_argument("--out", required=True, help="dataset folder (e.g. artifacts/data/default)")
+    co.add_argument("--samples", type=int, default=500_000, help="training samples to collect")
+    co.add_argument("--family", choices=("mixed", "paper", "fourier"), default="mixed")
+    co.add_argument("--fourier-share", type=float, default=0.7,
+                    help="mixed family: share of the training samples that are Fourier excitation")
+    co.add_argument("--plan-seed", type=int, default=0,
+                    help="seed of the planned trajectories (--seed is the plant's)")
+    co.add_argument("--test-trajectories", type=int, default=6)
+    co.add_argument("--test-repeats", type=int, default=5)
+    co.add_argument("--test-moves", type=int, default=4)
+    co.add_argument("--excitation", default=None, help="excitation config YAML")
+    co.add_argument("--plant", default=None, help="plant profile YAML (sim cells)")
+    common(co)
+    co.set_defaults(func=cmd_collect)
+
+    tr = sub.add_parser("train", help="fit one model (P1, P2, D, H1, H2, H3) and save it")
+    tr.add_argument("--data", required=True, help="dataset manifest (dataset.yaml)")
+    tr.add_argument("--model", choices=("P1", "P2", "D", "H1", "H2", "H3"), default="H1")
+    tr.add_argument("--out", required=True, help="model folder (e.g. artifacts/models/h1)")
+    tr.add_argument("--samples", type=int, default=None)
+    tr.add_argument("--window", type=int, default=None)
+    tr.add_argument("--grouping", choices=("own", "paper", "per_joint", "full"), default=None)
+    tr.add_argument("--derivatives", choices=("zero_phase", "causal"), default="zero_phase")
+    tr.add_argument("--nthread", type=int, default=2)
+    common(tr)
+    tr.set_defaults(func=cmd_train)
+
+    ev = sub.add_parser("evaluate", help="compare P1/P2/D/H1/H2/H3 on held-out trajectories")
+    ev.add_argument("--data", required=True, help="dataset manifest (dataset.yaml)")
+    ev.add_argument("--out", required=True, help="report folder (e.g. artifacts/eval/default)")
+    ev.add_argument("--train-samples", type=int, default=24_000)
+    ev.add_argument("--large-samples", type=int, default=500_000)
+    ev.add_argument("--curve", default=None, help="learning-curve sizes, comma-separated")
+    ev.add_argument("--no-curve", action="store_true")
+    ev.add_argument("--max-trees", type=int, default=None)
+    ev.add_argument("--nthread", type=int, default=2)
+    ev.add_argument("--plant", default=None, help="plant profile whose noise floor the report cites")
+    common(ev)
+    ev.set_defaults(func=cmd_evaluate)
+
     em = sub.add_parser("emulate", help="serve a device emulator on this machine until Ctrl+C")
     em.add_argument("device", choices=("arm", "sensor", "cell"),
                     help="cell: plant + arm + sensor emulators, endpoints as JSON on stdout, faults on stdin")
@@ -309,8 +405,14 @@ def build_parser() -> argparse.ArgumentParser:
     em.set_defaults(func=cmd_emulate)
 
     b = sub.add_parser("bench", help="benchmarks that print the project's measured figures")
-    b.add_argument("what", choices=("sim", "plant", "drivers"))
+    b.add_argument("what", choices=("sim", "plant", "drivers", "model"))
     b.add_argument("--n", type=int, default=500, help="samples (bench drivers)")
+    b.add_argument("--data", default=None, help="dataset manifest (bench model)")
+    b.add_argument("--model", default=None, help="model artefact (bench model; default: train an H1)")
+    b.add_argument("--calls", type=int, default=5000, help="single-sample predictions timed (bench model)")
+    b.add_argument("--train-samples", type=int, default=24_000, help="H1 training samples (bench model, no --model)")
+    b.add_argument("--fit-samples", type=int, default=500_000, help="samples for the timed XGBoost fit (bench model)")
+    b.add_argument("--nthread", type=int, default=2)
     b.add_argument("--plant", default=None, help="plant profile YAML (bench plant)")
     common(b)
     b.set_defaults(func=cmd_bench)

@@ -1,0 +1,432 @@
+"""Motion datasets (Parquet + YAML manifest): strict validation and zero-phase / causal derivative estimation.
+
+Format (documented in docs/dataset.md):
+
+* one or more Parquet files (or folders of Parquet parts, such as a run's `log/`) with columns
+  `t, q1..qn, tau1..taun` and optionally `dq1..dqn` and `traj` (trajectory id); extra columns are
+  ignored, so the control loop's step logs are valid datasets as they are;
+* a YAML manifest naming which files are for training and which for testing.
+
+Derivatives: `zero_phase` (Butterworth `filtfilt`, for offline training and evaluation) or `causal`
+(`CausalDerivatives`, the very class the controller runs once per sample).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from scipy import signal
+
+from cell.configio import join, load_dataclass, read_yaml, require
+from drivers.errors import DataError
+
+log = logging.getLogger(__name__)
+
+DerivativeMode = Literal["zero_phase", "causal"]
+GAP_FACTOR = 1.5  # a time step longer than this x the median step starts a new trajectory
+
+
+# ----------------------------------------------------------------------------------------- config
+@dataclass
+class FilterConfig:
+    """How velocities and accelerations are derived from the logged samples."""
+
+    cutoff_hz: float = 20.0  # Butterworth low-pass corner
+    order: int = 2  # filter order (zero-phase applies it twice: forward and backward)
+
+    def validate(self, where: str) -> None:
+        require(self.cutoff_hz > 0, join(where, "cutoff_hz"), f"must be > 0, got {self.cutoff_hz}")
+        require(1 <= self.order <= 8, join(where, "order"), f"must lie in 1..8, got {self.order}")
+
+
+@dataclass
+class DatasetManifest:
+    """dataset.yaml: file lists are relative to the manifest's folder unless absolute."""
+
+    train: list[str] = field(default_factory=list)
+    test: list[str] = field(default_factory=list)
+    joints: int | None = None  # checked against the URDF when given
+    robot: str = ""  # robot name from the URDF, informational
+    period_s: float | None = None  # nominal sample period, informational
+    description: str = ""
+    filter: FilterConfig = field(default_factory=FilterConfig)
+
+    def validate(self, where: str) -> None:
+        require(bool(self.train) or bool(self.test), join(where, "train"), "or test must list at least one file")
+        if self.joints is not None:
+            require(self.joints >= 1, join(where, "joints"), "must be >= 1")
+
+
+def load_manifest(path: Path) -> DatasetManifest:
+    return load_dataclass(DatasetManifest, read_yaml(Path(path)), f"{path}:")
+
+
+def manifest_files(path: Path, split: Literal["train", "test"]) -> list[Path]:
+    man = load_manifest(path)
+    base = Path(path).parent
+    return [p if p.is_absolute() else base / p for p in map(Path, getattr(man, split))]
+
+
+# ----------------------------------------------------------------------------------------- data
+@dataclass
+class Trajectory:
+    """One continuous recording: consecutive samples `t` apart, joint arrays (N, n)."""
+
+    name: str  # "<file>" or "<file>#<traj id>"
+    t: np.ndarray
+    q: np.ndarray
+    tau: np.ndarray
+    dq: np.ndarray | None = None
+    segment: np.ndarray | None = None  # optional per-row segment (move) id, for subsampling
+
+    @property
+    def n(self) -> int:
+        return int(self.q.shape[1])
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def slice(self, a: int, b: int, name: str | None = None) -> Trajectory:
+        return Trajectory(
+            name=name or self.name, t=self.t[a:b], q=self.q[a:b], tau=self.tau[a:b],
+            dq=None if self.dq is None else self.dq[a:b],
+            segment=None if self.segment is None else self.segment[a:b],
+        )
+
+
+def _joint_count(columns: Sequence[str], prefix: str) -> int:
+    n = 0
+    while f"{prefix}{n + 1}" in columns:
+        n += 1
+    return n
+
+
+def _column(table: pa.Table, name: str, file: Path) -> np.ndarray:
+    try:
+        arr = table.column(name).to_numpy(zero_copy_only=False)
+    except KeyError:
+        raise DataError(f"{file}: missing column '{name}'") from None
+    try:
+        values = np.asarray(arr, dtype=float)
+    except (TypeError, ValueError):
+        raise DataError(f"{file}: column '{name}' is not numeric") from None
+    bad = ~np.isfinite(values)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise DataError(
+            f"{file}: column '{name}' has {int(bad.sum())} NaN/inf rows (first at row {first}); "
+            "drop or repair those rows"
+        )
+    return values
+
+
+def read_table(path: Path) -> pa.Table:
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: no such file or folder")
+    try:
+        return pq.read_table(path)
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise DataError(f"{path}: not a readable Parquet file or folder ({str(exc).splitlines()[0]})") from None
+
+
+def load_trajectories(path: Path, n_joints: int | None = None) -> list[Trajectory]:
+    """Read and validate one dataset file; split it into trajectories by `traj` and by time gaps.
+
+    Raises DataError naming the file and the column for: missing columns, NaN/inf values,
+    non-increasing time, and a joint count different from `n_joints` (the URDF's).
+    """
+    path = Path(path)
+    table = read_table(path)
+    cols = table.column_names
+    if "t" not in cols:
+        raise DataError(f"{path}: missing column 't' (time in s)")
+    nq = _joint_count(cols, "q")
+    if nq == 0:
+        raise DataError(f"{path}: missing column 'q1' (joint positions q1..qn in rad)")
+    if n_joints is not None and nq != n_joints:
+        col = f"q{n_joints}" if nq < n_joints else f"q{n_joints + 1}"
+        what = "missing column" if nq < n_joints else "unexpected column"
+        raise DataError(
+            f"{path}: {what} '{col}': the file has {nq} joints (q1..q{nq}) but the URDF has {n_joints}"
+        )
+    n = nq
+    for prefix in ("tau",):
+        for i in range(1, n + 1):
+            if f"{prefix}{i}" not in cols:
+                raise DataError(f"{path}: missing column '{prefix}{i}' (measured joint torque in N·m)")
+    ndq = _joint_count(cols, "dq")
+    if 0 < ndq < n:
+        raise DataError(f"{path}: missing column 'dq{ndq + 1}' (give all of dq1..dq{n} or none)")
+    if table.num_rows < 2:
+        raise DataError(f"{path}: column 't' has {table.num_rows} rows; a trajectory needs at least 2")
+    t = _column(table, "t", path)
+    q = np.column_stack([_column(table, f"q{i}", path) for i in range(1, n + 1)])
+    tau = np.column_stack([_column(table, f"tau{i}", path) for i in range(1, n + 1)])
+    dq = np.column_stack([_column(table, f"dq{i}", path) for i in range(1, n + 1)]) if ndq else None
+    traj_id = _column(table, "traj", path).astype(np.int64) if "traj" in cols else np.zeros(len(t), np.int64)
+    segment = _column(table, "segment", path).astype(np.int64) if "segment" in cols else None
+
+    out: list[Trajectory] = []
+    # Rows of one trajectory id are contiguous in a well-formed file; time increases within each.
+    change = np.flatnonzero(np.diff(traj_id) != 0) + 1
+    bounds = np.concatenate([[0], change, [len(t)]])
+    seen: set[int] = set()
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        tid = int(traj_id[a])
+        if tid in seen:
+            raise DataError(f"{path}: column 'traj' value {tid} is not contiguous (rows {a}..{b - 1} repeat it)")
+        seen.add(tid)
+        dt = np.diff(t[a:b])
+        if np.any(dt <= 0):
+            k = int(np.flatnonzero(dt <= 0)[0]) + a + 1
+            raise DataError(
+                f"{path}: column 't' is not strictly increasing at row {k} (t={t[k]:.6g} s after {t[k - 1]:.6g} s)"
+            )
+        # A gap (a dropped chunk, concatenated runs) breaks the trajectory: derivatives must not span it.
+        step = float(np.median(dt)) if dt.size else 0.0
+        gaps = np.flatnonzero(dt > GAP_FACTOR * step) + 1 if step > 0 else np.array([], int)
+        pieces = np.concatenate([[0], gaps, [b - a]]) + a
+        for k, (c, d) in enumerate(zip(pieces[:-1], pieces[1:], strict=True)):
+            if d - c < 2:
+                continue
+            name = str(path) if len(bounds) == 2 else f"{path}#{tid}"
+            if len(pieces) > 2:
+                name += f"/{k}"
+            out.append(Trajectory(
+                name=name, t=t[c:d], q=q[c:d], tau=tau[c:d], dq=None if dq is None else dq[c:d],
+                segment=None if segment is None else segment[c:d],
+            ))
+    return out
+
+
+def load_split(manifest: Path, split: Literal["train", "test"], n_joints: int | None = None) -> list[Trajectory]:
+    man = load_manifest(manifest)
+    if n_joints is not None and man.joints is not None and man.joints != n_joints:
+        raise DataError(f"{manifest}: joints is {man.joints} but the URDF has {n_joints} joints")
+    files = manifest_files(manifest, split)
+    if not files:
+        raise DataError(f"{manifest}: lists no {split} files")
+    out: list[Trajectory] = []
+    for f in files:
+        out.extend(load_trajectories(f, n_joints))
+    return out
+
+
+def files_sha256(paths: Iterable[Path]) -> str:
+    """Content hash of dataset files (folders: every Parquet part inside, in name order)."""
+    h = hashlib.sha256()
+    for p in sorted(Path(x) for x in paths):
+        parts = sorted(p.rglob("*.parquet")) if p.is_dir() else [p]
+        for part in parts:
+            if part.name.startswith("."):
+                continue
+            h.update(part.name.encode())
+            h.update(part.read_bytes())
+    return h.hexdigest()
+
+
+def write_trajectory(path: Path, traj: Trajectory, traj_id: int | None = None) -> None:
+    """Write one trajectory in the dataset format (used by tests and by `collect`)."""
+    cols: dict[str, np.ndarray] = {"t": traj.t}
+    for prefix, arr in (("q", traj.q), ("dq", traj.dq), ("tau", traj.tau)):
+        if arr is None:
+            continue
+        for i in range(arr.shape[1]):
+            cols[f"{prefix}{i + 1}"] = arr[:, i]
+    if traj_id is not None:
+        cols["traj"] = np.full(len(traj.t), traj_id, np.int64)
+    if traj.segment is not None:
+        cols["segment"] = traj.segment
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    pq.write_table(pa.table(cols), path)
+
+
+# ----------------------------------------------------------------------------------------- filters
+def butter(cfg: FilterConfig, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    nyq = 0.5 / dt
+    wn = min(cfg.cutoff_hz / nyq, 0.99)
+    b, a = signal.butter(cfg.order, wn)
+    return np.asarray(b), np.asarray(a)
+
+
+def zero_phase_derivatives(
+    t: np.ndarray, q: np.ndarray, dq: np.ndarray | None, cfg: FilterConfig | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(dq, ddq) without phase lag, for offline use.
+
+    dq: the measured one when given, else the central difference of the low-passed q.
+    ddq: the central difference of dq, low-passed forward and backward (filtfilt).
+    """
+    cfg = cfg or FilterConfig()
+    dt = float(np.median(np.diff(t)))
+    b, a = butter(cfg, dt)
+    padlen = 3 * max(len(a), len(b))
+    can_filter = len(t) > padlen
+
+    def lowpass(x: np.ndarray) -> np.ndarray:
+        return signal.filtfilt(b, a, x, axis=0) if can_filter else x
+
+    v = np.asarray(dq, float) if dq is not None else np.gradient(lowpass(q), t, axis=0)
+    acc = lowpass(np.gradient(v, t, axis=0))
+    return v, acc
+
+
+class CausalDerivatives:
+    """Per-sample velocity/acceleration estimate for online use (the controller runs exactly this).
+
+    dq: the measured one when given, else the backward difference of q, low-passed;
+    ddq: the backward difference of dq, low-passed (Butterworth, direct form II transposed).
+    The first sample reports zero acceleration (and zero velocity when dq is not measured).
+    """
+
+    def __init__(self, n: int, dt: float, cfg: FilterConfig | None = None) -> None:
+        self.cfg = cfg or FilterConfig()
+        self.n = n
+        self.dt = dt
+        self.b, self.a = butter(self.cfg, dt)
+        self.b = self.b / self.a[0]
+        self.a = self.a / self.a[0]
+        self.reset()
+
+    def reset(self) -> None:
+        order = len(self.a) - 1
+        self._zv = np.zeros((order, self.n))
+        self._za = np.zeros((order, self.n))
+        self._q_prev: np.ndarray | None = None
+        self._v_prev: np.ndarray | None = None
+
+    def _filter(self, x: np.ndarray, z: np.ndarray) -> np.ndarray:
+        b, a = self.b, self.a
+        y = b[0] * x + z[0]
+        for i in range(len(z) - 1):
+            z[i] = b[i + 1] * x + z[i + 1] - a[i + 1] * y
+        z[-1] = b[-1] * x - a[-1] * y
+        return y
+
+    def _prime(self, z: np.ndarray, x: np.ndarray) -> None:
+        """Start the filter in steady state at input x (no start-up transient)."""
+        zi = signal.lfilter_zi(self.b, self.a)
+        z[:] = zi[:, None] * x[None, :]
+
+    def step(self, q: np.ndarray, dq: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        q = np.asarray(q, float)
+        if dq is None:
+            if self._q_prev is None:
+                raw_v = np.zeros(self.n)
+                self._prime(self._zv, raw_v)
+            else:
+                raw_v = (q - self._q_prev) / self.dt
+            v = self._filter(raw_v, self._zv)
+        else:
+            v = np.asarray(dq, float)
+        self._q_prev = q
+        if self._v_prev is None:
+            raw_a = np.zeros(self.n)
+            self._prime(self._za, raw_a)
+        else:
+            raw_a = (v - self._v_prev) / self.dt
+        self._v_prev = v
+        return v, self._filter(raw_a, self._za)
+
+    def run(self, q: np.ndarray, dq: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The same per-sample pipeline over a whole recording (N, n) -> (dq, ddq)."""
+        self.reset()
+        out_v = np.empty_like(q, dtype=float)
+        out_a = np.empty_like(q, dtype=float)
+        for k in range(q.shape[0]):
+            out_v[k], out_a[k] = self.step(q[k], None if dq is None else dq[k])
+        return out_v, out_a
+
+
+def derivatives(
+    traj: Trajectory, mode: DerivativeMode = "zero_phase", cfg: FilterConfig | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(dq, ddq) for one trajectory with the chosen filter."""
+    if mode == "zero_phase":
+        return zero_phase_derivatives(traj.t, traj.q, traj.dq, cfg)
+    if mode == "causal":
+        dt = float(np.median(np.diff(traj.t)))
+        return CausalDerivatives(traj.n, dt, cfg).run(traj.q, traj.dq)
+    raise ValueError(f"unknown derivative mode {mode!r} (zero_phase or causal)")
+
+
+@dataclass
+class Samples:
+    """Trajectories stacked for fitting: (N, n) arrays and the row where each trajectory starts."""
+
+    q: np.ndarray
+    dq: np.ndarray
+    ddq: np.ndarray
+    tau: np.ndarray
+    starts: np.ndarray  # first row of each trajectory (windows never reach across one)
+    names: list[str]
+    segment: np.ndarray  # global segment id per row (trajectory-unique), for subsampling by whole moves
+    mode: DerivativeMode = "zero_phase"
+
+    def __len__(self) -> int:
+        return int(self.q.shape[0])
+
+    def trajectory_slices(self) -> list[slice]:
+        ends = np.concatenate([self.starts[1:], [len(self)]])
+        return [slice(int(a), int(b)) for a, b in zip(self.starts, ends, strict=True)]
+
+    def take_rows(self, rows: np.ndarray) -> Samples:
+        """Rows (sorted) as a new Samples; a jump in row index starts a new trajectory."""
+        rows = np.sort(np.asarray(rows, np.int64))
+        new_start = np.ones(len(rows), bool)
+        new_start[1:] = np.diff(rows) != 1
+        starts_set = np.zeros(len(self), bool)
+        starts_set[self.starts] = True
+        new_start |= starts_set[rows]
+        return Samples(
+            q=self.q[rows], dq=self.dq[rows], ddq=self.ddq[rows], tau=self.tau[rows],
+            starts=np.flatnonzero(new_start), names=self.names, segment=self.segment[rows], mode=self.mode,
+        )
+
+
+def stack(trajs: Sequence[Trajectory], mode: DerivativeMode = "zero_phase", cfg: FilterConfig | None = None) -> Samples:
+    if not trajs:
+        raise DataError("no trajectories to stack (empty dataset split)")
+    qs, vs, accs, taus, segs, starts = [], [], [], [], [], []
+    row = 0
+    seg_base = 0
+    for tr in trajs:
+        v, a = derivatives(tr, mode, cfg)
+        qs.append(tr.q)
+        vs.append(v)
+        accs.append(a)
+        taus.append(tr.tau)
+        seg = tr.segment if tr.segment is not None else np.zeros(len(tr), np.int64)
+        _, inv = np.unique(seg, return_inverse=True)
+        segs.append(inv + seg_base)
+        seg_base += int(inv.max()) + 1
+        starts.append(row)
+        row += len(tr)
+    return Samples(
+        q=np.concatenate(qs), dq=np.concatenate(vs), ddq=np.concatenate(accs), tau=np.concatenate(taus),
+        starts=np.asarray(starts, np.int64), names=[t.name for t in trajs], segment=np.concatenate(segs), mode=mode,
+    )
+
+
+def subsample_segments(s: Samples, n_samples: int, seed: int = 0) -> Samples:
+    """About `n_samples` rows made of whole segments (moves) drawn at random: a shorter collection
+    of the same family, not a random scatter of rows (which would flatter small training sets)."""
+    if n_samples >= len(s):
+        return s
+    rng = np.random.default_rng(seed)
+    ids, counts = np.unique(s.segment, return_counts=True)
+    order = rng.permutation(len(ids))
+    total = np.cumsum(counts[order])
+    k = int(np.searchsorted(total, n_samples)) + 1
+    chosen = ids[order[:k]]
+    rows = np.flatnonzero(np.isin(s.segment, chosen))
+    return s.take_rows(rows[:n_samples])  # the last segment is cut so the count is never exceeded

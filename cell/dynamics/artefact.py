@@ -1,0 +1,120 @@
+"""Saved models: a folder with `model.json` (metadata, physics parameters, features) and one UBJ booster per joint."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import xgboost as xgb
+
+from cell.configio import load_dataclass
+from cell.dynamics.base import ModelMeta
+from cell.dynamics.features import FeatureSpec
+from cell.dynamics.learned import PHYSICS_PART, Forest, LearnedModel, XGBParams
+from cell.dynamics.physics import P1Model, P2Model, P2Params, urdf_sha256
+from cell.robot import RobotModel
+from drivers.errors import DataError
+
+log = logging.getLogger(__name__)
+
+FORMAT = "tmcell-torque-model"
+FORMAT_VERSION = 1
+AnyModel = P1Model | P2Model | LearnedModel
+
+
+def save_model(model: AnyModel, path: Path) -> Path:
+    """Write `path/model.json` (+ `path/booster_j<k>.ubj`); the folder is replaced atomically per file."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    doc: dict[str, Any] = {
+        "format": FORMAT, "format_version": FORMAT_VERSION, "meta": dataclasses.asdict(model.meta),
+        "xgboost_version": xgb.__version__,
+    }
+    if isinstance(model, P2Model):
+        doc["p2"] = model.params.to_dict()
+    elif isinstance(model, LearnedModel):
+        if model.physics is not None:
+            doc["p2"] = model.physics.params.to_dict()
+            doc["p2_meta"] = dataclasses.asdict(model.physics.meta)
+        doc["features"] = model.forest.spec.to_dict()
+        doc["xgboost"] = model.params.to_dict()
+        boosters = {}
+        for j, bst in sorted(model.forest.boosters.items()):
+            name = f"booster_j{j + 1}.ubj"
+            tmp = path / f".tmp-{name}"  # keeps the .ubj extension: it selects the format
+            bst.save_model(str(tmp))
+            os.replace(tmp, path / name)
+            boosters[str(j + 1)] = name
+        doc["boosters"] = boosters
+    tmp = path / ".model.json.tmp"
+    tmp.write_text(json.dumps(doc, indent=1))
+    os.replace(tmp, path / "model.json")
+    return path
+
+
+def _meta(d: dict[str, Any]) -> ModelMeta:
+    fields = {f.name for f in dataclasses.fields(ModelMeta)}
+    return ModelMeta(**{k: v for k, v in d.items() if k in fields})
+
+
+def check_robot(meta: ModelMeta, robot: RobotModel, where: str) -> None:
+    """Refuse a model made for another robot: name, URDF content hash and joint count must match."""
+    have = (robot.model.name, urdf_sha256(robot.urdf), robot.n)
+    want = (meta.robot, meta.urdf_sha256, meta.joints)
+    if have != want:
+        raise DataError(
+            f"{where}: model was made for robot '{meta.robot}' ({meta.joints} joints, URDF sha256 "
+            f"{meta.urdf_sha256[:12]}), but this cell's robot is '{have[0]}' ({have[2]} joints, URDF {robot.urdf} "
+            f"sha256 {have[1][:12]}); retrain it for this robot"
+        )
+    tool = meta.extra.get("tool")
+    if tool and abs(float(tool.get("mass", 0.0)) - robot.tool.mass) > 1e-9:
+        log.warning("%s: trained with a %.3f kg tool, this cell's nominal tool is %.3f kg", where,
+                    float(tool["mass"]), robot.tool.mass)
+
+
+def load_model(path: Path, robot: RobotModel) -> AnyModel:
+    path = Path(path)
+    doc_path = path / "model.json" if path.is_dir() else path
+    if not doc_path.exists():
+        raise DataError(f"{path}: no model.json (not a saved model)")
+    try:
+        doc = json.loads(doc_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DataError(f"{doc_path}: unreadable model file ({exc})") from None
+    if doc.get("format") != FORMAT:
+        raise DataError(f"{doc_path}: column 'format' is {doc.get('format')!r}, expected {FORMAT!r}")
+    if int(doc.get("format_version", 0)) > FORMAT_VERSION:
+        raise DataError(f"{doc_path}: format_version {doc['format_version']} is newer than this build reads")
+    meta = _meta(doc["meta"])
+    check_robot(meta, robot, str(doc_path))
+    if meta.kind == "P1":
+        return P1Model(robot)
+    if meta.kind == "P2":
+        return P2Model(robot, P2Params.from_dict(doc["p2"]), meta)
+    if meta.kind not in PHYSICS_PART:
+        raise DataError(f"{doc_path}: unknown model kind {meta.kind!r}")
+    p2 = None
+    if "p2" in doc:
+        p2_meta = _meta(doc["p2_meta"]) if "p2_meta" in doc else dataclasses.replace(meta, kind="P2")
+        p2 = P2Model(robot, P2Params.from_dict(doc["p2"]), p2_meta)
+    spec = load_dataclass(FeatureSpec, doc["features"], f"{doc_path}: features")
+    params = load_dataclass(XGBParams, doc.get("xgboost", {}), f"{doc_path}: xgboost")
+    boosters: dict[int, xgb.Booster] = {}
+    for key, name in doc["boosters"].items():
+        file = doc_path.parent / name
+        if not file.exists():
+            raise DataError(f"{doc_path}: booster file {file} for joint {key} is missing")
+        bst = xgb.Booster()
+        bst.load_model(str(file))
+        bst.set_param({"nthread": params.nthread})
+        boosters[int(key) - 1] = bst
+    forest = Forest(spec, robot.n, boosters)
+    missing = [j + 1 for j in forest.outputs if j not in boosters]
+    if missing:
+        raise DataError(f"{doc_path}: no booster for joint(s) {missing}")
+    return LearnedModel(kind=meta.kind, forest=forest, physics=p2, meta=meta, params=params)
