@@ -18,7 +18,7 @@ from drivers.errors import CellError, ConfigError
 
 log = logging.getLogger("tmcell")
 
-TASK_NAMES = ("wipe",)
+TASK_NAMES = ("wipe", "peg-in-hole")
 
 
 # --------------------------------------------------------------------------------------- building
@@ -37,6 +37,16 @@ def build_task(name: str, cfg: CellConfig, robot: RobotModel) -> tuple[Any, floa
         except ValueError as exc:
             raise ConfigError(f"{cfg.source}: tasks.wipe: {exc}") from None
         return task, wcfg.max_duration_s
+    if name == "peg-in-hole":
+        from tasks.peg import PegInHoleTask, load_peg_config
+
+        pcfg = load_peg_config(cfg.tasks.get("peg"), f"{cfg.source}: tasks.peg")
+        try:
+            task = PegInHoleTask(pcfg, robot, np.asarray(cfg.scene.hole_center, float), cfg.scene.table_height,
+                                 cfg.loop.period_s, np.asarray(cfg.robot.home))
+        except ValueError as exc:
+            raise ConfigError(f"{cfg.source}: tasks.peg: {exc}") from None
+        return task, pcfg.max_duration_s
     raise ConfigError(f"unknown task '{name}' (known: {', '.join(TASK_NAMES)})")
 
 
@@ -92,19 +102,92 @@ def open_cell(cfg: CellConfig, kind: str, robot: RobotModel, seed: int | None, s
 
 
 # --------------------------------------------------------------------------------------- commands
+# The tool each task runs with: its virtual sensor's model and calibration are that tool's.
+TASK_TOOLS = {"wipe": "wipe", "peg-in-hole": "peg"}
+TASK_SCENES = {"wipe": "table", "peg-in-hole": "peg"}  # the simulated fixture each task works on
+PREPARE_SAMPLES = 40_000  # `prepare`'s default collection: about half a minute of simulated motion per 10k
+
+
+def cell_identity(cfg: CellConfig, kind: str, seed: int | None) -> dict[str, Any]:
+    """Which arm a calibration was made on: for a simulated one its plant profile and seed (the seed
+    draws the arm's friction ripple phases, so another seed is another specimen of the arm)."""
+    if kind == "real":
+        return {"kind": "real"}
+    import hashlib
+
+    from sim.profile import load_profile
+
+    path = resolve(cfg.plant)
+    effective = seed if seed is not None else load_profile(path).seed
+    return {"kind": "sim", "plant": str(path), "plant_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+            "seed": effective}
+
+
+def ensure_virtual_artefacts(cfg: CellConfig, tool: str, kind: str, robot: RobotModel,
+                             seed: int | None = None) -> None:
+    """The tool's model and calibration must be present and match: built on the spot for a simulated
+    or emulated cell (same plant, logged), refused with the command to run for the real one."""
+    from tasks.calibrate import artefacts_missing
+
+    why = artefacts_missing(cfg, robot, tool)
+    if not why:
+        if kind != "real":
+            _warn_other_plant(cfg, tool, seed)
+        return
+    if kind == "real":
+        raise ConfigError(
+            f"virtual force sensor for the {tool} tool: {why}; make it on the cell with "
+            f"`main.py prepare --tool {tool} --cell real` (or `main.py calibrate --tool {tool} --cell real` when "
+            f"the model exists), or run with --force-source sensor"
+        )
+    log.warning("virtual force sensor for the %s tool: %s; building it now with `main.py prepare --tool %s` "
+                "on the simulated cell (once, a couple of minutes)", tool, why, tool)
+    run_prepare(cfg, tool, "sim", None, PREPARE_SAMPLES, force=False)
+
+
+def _warn_other_plant(cfg: CellConfig, tool: str, seed: int | None) -> None:
+    from cell.virtual_sensor import read_calibration_doc
+
+    made = read_calibration_doc(cfg.virtual_sensor.path("calibration", tool)).get("cell", {})
+    here = cell_identity(cfg, "sim", seed)
+    if made.get("kind") == "sim" and (made.get("plant_sha256"), made.get("seed")) != (here["plant_sha256"],
+                                                                                      here["seed"]):
+        log.warning("the %s tool's virtual sensor was made on plant %s seed %s, this run's is %s seed %s: another "
+                    "specimen of the arm (its friction ripple differs), expect larger force errors; "
+                    "`main.py prepare --tool %s --force%s` rebuilds it for this one", tool,
+                    Path(str(made.get("plant"))).name, made.get("seed"), Path(here["plant"]).name, here["seed"],
+                    tool, f" --seed {seed}" if seed is not None else "")
+
+
+def make_force_source(cfg: CellConfig, source: str, tool: str, cell: Any, robot: RobotModel) -> Any:
+    """The OpenCell a task runs on for --force-source: `sensor` keeps the F/T sensor in the loop;
+    `virtual` regulates with the tool's virtual sensor and keeps the F/T sensor (when the cell has
+    one) as the logged ground truth.  Every task builds its force source here."""
+    if source == "sensor":
+        return cell
+    if source != "virtual":
+        raise ConfigError(f"--force-source {source}: unknown (virtual or sensor)")
+    from cell.virtual_sensor import build_virtual_source
+
+    virtual = build_virtual_source(cfg.virtual_sensor, robot, tool, cfg.loop.period_s)
+    log.info("force source: virtual sensor (%s) for the %s tool; the F/T sensor is logged as ground truth",
+             virtual.label, tool)
+    return replace(cell, force=virtual, ground_truth=cell.force)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.plant:
         cfg.plant = str(Path(args.plant).resolve())
-    if args.force_source != "sensor":
-        raise ConfigError(
-            f"--force-source {args.force_source}: the virtual force sensor is not built yet; use --force-source sensor"
-        )
-    robot = robot_for(cfg, "wipe")
+    tool = TASK_TOOLS.get(args.task, "wipe")
+    robot = robot_for(cfg, tool)
     task, max_duration = build_task(args.task, cfg, robot)
-    holder = open_cell(cfg, cell_kind(cfg, args.cell), robot, args.seed, "table")
+    kind = cell_kind(cfg, args.cell)
+    if args.force_source == "virtual":
+        ensure_virtual_artefacts(cfg, tool, kind, robot, args.seed)
+    holder = open_cell(cfg, kind, robot, args.seed, TASK_SCENES.get(args.task, "table"))
     try:
-        cell = holder.open()
+        cell = make_force_source(cfg, args.force_source, tool, holder.open(), robot)
         from tasks.runner import run_task
 
         summary = run_task(task, cell, cfg, robot, max_duration, record=not args.no_record,
@@ -115,6 +198,66 @@ def cmd_run(args: argparse.Namespace) -> int:
     if summary["outcome"] == "interrupted":
         return 130
     return 0 if summary["outcome"] == "done" else 1
+
+
+def calibration_cells(cfg: CellConfig, kind: str, tool: str, robot: RobotModel,
+                      seed: int | None) -> tuple[Any, Any]:
+    """(opener, load-applier factory) for calibrating on `kind`: the free scene with `tool` mounted
+    and the scripted hand (sim), or the real cell and the operator prompted here (never the driver)."""
+    from tasks.calibrate import OperatorLoads
+
+    if kind == "sim":
+        from sim.cell import make_sim_cell
+        from sim.hand import ScriptedHand
+
+        cal = cfg.virtual_sensor.calibration
+
+        def sim_opener() -> Any:
+            return make_sim_cell(cfg, robot.limits, seed=seed, scene_kind="free", tool=tool)
+
+        def hand(holder: Any) -> Any:
+            return ScriptedHand(holder.plant, seed=seed or 0, max_force_n=cal.max_force_n,
+                                max_lateral_n=cal.max_lateral_n, max_moment_nm=cal.max_moment_nm, load_s=cal.load_s)
+
+        return sim_opener, hand
+    if kind == "real":
+        def real_opener() -> Any:
+            return RealCell(cfg, robot)
+
+        return real_opener, lambda holder: OperatorLoads()
+    raise ConfigError(f"--cell {kind}: calibration runs on the simulated cell (its scripted hand) or the real one")
+
+
+def run_prepare(cfg: CellConfig, tool: str, kind: str, seed: int | None, samples: int, force: bool) -> dict[str, Any]:
+    from tasks.calibrate import prepare
+
+    robot = robot_for(cfg, tool)
+    if kind == "sim":
+        from sim.cell import make_plant
+
+        make_plant(cfg, seed, "free", tool)  # a bad plant profile fails here, before any planning
+    opener, applier = calibration_cells(cfg, kind, tool, robot, seed)
+    return prepare(cfg, tool, robot, opener, opener, applier, samples=samples, force=force,
+                   cell_info=cell_identity(cfg, kind, seed))
+
+
+def cmd_prepare(args: argparse.Namespace) -> int:
+    cfg = _lab_config(args)
+    out = run_prepare(cfg, args.tool, args.cell, args.seed, args.samples, args.force)
+    _emit(out, args.json)
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from tasks.calibrate import calibrate
+
+    cfg = _lab_config(args)
+    robot = robot_for(cfg, args.tool)
+    opener, applier = calibration_cells(cfg, args.cell, args.tool, robot, args.seed)
+    out = calibrate(cfg, args.tool, robot, opener, applier, Path(args.model) if args.model else None,
+                    Path(args.out) if args.out else None, cell_identity(cfg, args.cell, args.seed))
+    _emit(out, args.json)
+    return 0
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -143,8 +286,34 @@ def cmd_status(args: argparse.Namespace) -> int:
     return 0
 
 
+def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
+    """Randomised insertions on the simulated cell with the force source `run` would use for the peg."""
+    from sim.bench_peg import bench_peg
+    from tasks.peg import load_peg_config
+
+    cfg = load_config(args.config)
+    if args.plant:
+        cfg.plant = str(Path(args.plant).resolve())
+    robot = robot_for(cfg, "peg")
+    pcfg = load_peg_config(cfg.tasks.get("peg"), f"{cfg.source}: tasks.peg")
+    if args.force_source == "virtual":
+        ensure_virtual_artefacts(cfg, "peg", "sim", robot)
+
+    def wrap(cell: Any) -> Any:
+        return make_force_source(cfg, args.force_source, "peg", cell, robot)
+
+    if args.trials < 1 or args.max_offset_mm < 0 or args.max_tilt_deg < 0:
+        raise ConfigError("bench peg-in-hole: --trials must be >= 1, --max-offset-mm and --max-tilt-deg >= 0")
+    return bench_peg(cfg, robot, pcfg, args.trials, args.seed if args.seed is not None else 0,
+                     max_offset_m=args.max_offset_mm * 1e-3, max_tilt_deg=args.max_tilt_deg,
+                     peg_diameter=args.peg_diameter_mm * 1e-3 if args.peg_diameter_mm else None,
+                     wrap=wrap, force_source=args.force_source)
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
-    if args.what == "sim":
+    if args.what == "peg-in-hole":
+        out = bench_peg_in_hole(args)
+    elif args.what == "sim":
         from sim.bench import bench_sim
 
         out = bench_sim(load_config(args.config), seed=args.seed)
@@ -173,20 +342,22 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[Any, str]:
-    """The torque predictor the planner uses: a saved model artefact, or the nominal rigid body (P1)."""
+def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[Any, str, Any]:
+    """The torque predictor the planner uses, its name and the part toppra takes as its constraint:
+    a saved model artefact, or the nominal rigid body (P1)."""
     if path:
         from cell.dynamics.artefact import load_model  # the model lab's artefacts
+        from cell.planner import toppra_terms
 
         model = load_model(Path(path), robot)
-        return model.predict, f"{model.meta.kind} ({path})"
-    log.warning("no --model given: planning with the nominal rigid-body model (P1); "
-                "validation on the cell tightens the plan where it is wrong")
+        return model.predict, f"{model.meta.kind} ({path})", toppra_terms(model)
+    log.warning("no --model and no prepared model (main.py prepare): planning with the nominal rigid-body model "
+                "(P1, no rotor inertia or friction); validation on the cell corrects the plan where it is wrong")
 
     def p1(q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
         return np.array([robot.rnea(a, b, c) for a, b, c in zip(q, dq, ddq, strict=True)])
 
-    return p1, "P1 (nominal URDF)"
+    return p1, "P1 (nominal URDF)", None
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
@@ -204,7 +375,13 @@ def cmd_plan(args: argparse.Namespace) -> int:
             raise ConfigError(f"{args.plans}: no path named '{unknown[0]}' (known: {', '.join(plan_file.paths)})")
     cfg.safety = replace(cfg.safety, max_tcp_speed=plan_file.max_tcp_speed)
     robot = robot_for(cfg, "wipe")
-    predictor, model_name = torque_model(cfg, robot, args.model)
+    model_path = args.model
+    if model_path is None:
+        prepared = cfg.virtual_sensor.path("model", "wipe")
+        if (prepared / "model.json").exists():
+            model_path = str(prepared)
+            log.info("planning with the prepared hybrid model %s (--model to choose another)", prepared)
+    predictor, model_name, terms = torque_model(cfg, robot, model_path)
     collisions = CollisionChecker(robot, replace(cfg.scene, kind="free"))
 
     def open_for_plan() -> tuple[Any, Any]:
@@ -216,7 +393,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
             raise
 
     out = run_plans(cfg, robot, predictor, model_name, plan_file, open_for_plan, collisions,
-                    Path(cfg.recording.directory) / "plans", only)
+                    Path(cfg.recording.directory) / "plans", only, terms)
     _emit(out, args.json)
     return 0
 
@@ -331,11 +508,30 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("task", choices=TASK_NAMES)
     run.add_argument("--cell", choices=("sim", "emulated", "real"), default=None,
                      help="default: devices.*.kind from the config")
-    run.add_argument("--force-source", choices=("sensor", "virtual"), default="sensor")
+    run.add_argument("--force-source", choices=("virtual", "sensor"), default="virtual",
+                     help="virtual (default): the virtual force sensor, the F/T sensor logged as ground truth")
     run.add_argument("--plant", default=None, help="plant profile YAML (sim cells)")
     run.add_argument("--no-record", action="store_true", help="do not write runs/<...>/")
     common(run)
     run.set_defaults(func=cmd_run)
+
+    pr = sub.add_parser("prepare", help="make a tool ready for sensorless tasks: collect, train H1, calibrate")
+    pr.add_argument("--tool", choices=("wipe", "peg"), default="wipe")
+    pr.add_argument("--cell", choices=("sim", "real"), default="sim")
+    pr.add_argument("--samples", type=int, default=PREPARE_SAMPLES, help="training samples to collect")
+    pr.add_argument("--force", action="store_true", help="rebuild every artefact even if present and matching")
+    pr.add_argument("--plant", default=None, help="plant profile YAML (sim cells)")
+    common(pr)
+    pr.set_defaults(func=cmd_prepare)
+
+    ca = sub.add_parser("calibrate", help="calibrate the virtual force sensor against the F/T sensor")
+    ca.add_argument("--tool", choices=("wipe", "peg"), default="wipe")
+    ca.add_argument("--cell", choices=("sim", "real"), default="sim")
+    ca.add_argument("--model", default=None, help="torque model artefact (default: virtual_sensor.model_dir)")
+    ca.add_argument("--out", default=None, help="calibration folder (default: virtual_sensor.calibration_dir)")
+    ca.add_argument("--plant", default=None, help="plant profile YAML (sim cells)")
+    common(ca)
+    ca.set_defaults(func=cmd_calibrate)
 
     st = sub.add_parser("status", help="connect to the cell and print its state")
     st.add_argument("--cell", choices=("sim", "emulated", "real"), default=None)
@@ -405,7 +601,16 @@ def build_parser() -> argparse.ArgumentParser:
     em.set_defaults(func=cmd_emulate)
 
     b = sub.add_parser("bench", help="benchmarks that print the project's measured figures")
-    b.add_argument("what", choices=("sim", "plant", "drivers", "model"))
+    b.add_argument("what", choices=("sim", "plant", "drivers", "model", "peg-in-hole"))
+    b.add_argument("--trials", type=int, default=50, help="randomised insertions (bench peg-in-hole)")
+    b.add_argument("--max-offset-mm", type=float, default=2.0,
+                   help="hole offset drawn in +-this on x and y (bench peg-in-hole)")
+    b.add_argument("--max-tilt-deg", type=float, default=2.0,
+                   help="hole tilt drawn in +-this about x and y (bench peg-in-hole)")
+    b.add_argument("--peg-diameter-mm", type=float, default=None,
+                   help="peg diameter (bench peg-in-hole; default: the plant profile's, 21.4)")
+    b.add_argument("--force-source", choices=("virtual", "sensor"), default="virtual",
+                   help="bench peg-in-hole: what the task regulates with")
     b.add_argument("--n", type=int, default=500, help="samples (bench drivers)")
     b.add_argument("--data", default=None, help="dataset manifest (bench model)")
     b.add_argument("--model", default=None, help="model artefact (bench model; default: train an H1)")

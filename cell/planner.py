@@ -5,8 +5,9 @@ cumulative joint-space chord length), so their times compare like for like:
 
 - `ToppraPlanner`: the provably time-optimal timing (TOPP-RA) along the path.  toppra's torque
   constraint needs torque to be second order in the path speed, which holds for the rigid-body part
-  of the model but not for friction or a learned residual; so the rigid-body part is the toppra
-  constraint and the rest of the model is handled by iteration: the full model is evaluated on the
+  of the model but not for viscous friction or a learned residual; so the rigid-body part with the
+  rotor inertia and Coulomb friction (`ToppraTerms`) is the toppra constraint, and the rest of the
+  model is handled by iteration: the full model is evaluated on the
   timed trajectory and any joint that exceeds its limit gets its toppra bound lowered by the excess,
   until the full model's torques fit.
 - `UniformScalingPlanner`: the operator's pendant speed knob: a fixed trapezoidal profile in the path
@@ -37,6 +38,35 @@ log = logging.getLogger(__name__)
 ta.setup_logging("WARNING")
 
 TorqueFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (N,n) x3 -> (N,n)
+InvDyn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (n,) x3 -> (n,), second order in the path speed
+
+
+@dataclass
+class ToppraTerms:
+    """The part of a torque model toppra can take as its constraint: `inv_dyn` must be quadratic in the
+    path speed (rigid body, rotor inertia), `coulomb` the per-joint f_c of `f_c sign(q')`."""
+
+    inv_dyn: InvDyn
+    coulomb: np.ndarray | None = None
+
+
+def toppra_terms(model: object) -> ToppraTerms | None:
+    """The identified physics of a model-lab model (P2, or the physics part of H1-H3), or None (P1, D).
+
+    Rotor inertia matters most: at the accelerations a time-optimal plan reaches, `B_m q''` is as large
+    as the rigid body's torque, and leaving it to the iteration would make the path look infeasible.
+    """
+    from cell.dynamics.physics import P2Model  # the planner only needs the lab's models when given one
+
+    p2 = model if isinstance(model, P2Model) else getattr(model, "physics", None)
+    if not isinstance(p2, P2Model):
+        return None
+    B_m = np.asarray(p2.params.B_m, float)
+
+    def inv_dyn(q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
+        return p2.rigid_one(q, dq, ddq) + B_m * ddq
+
+    return ToppraTerms(inv_dyn, np.asarray(p2.params.f_c, float))
 
 
 class PlanningError(CellError):
@@ -55,6 +85,11 @@ class PlannerConfig:
     sample_period_s: float = 0.008
     baseline_blend: float = 0.25  # share of the baseline's duration spent accelerating (and braking)
     collision_samples: int = 200
+    # toppra's optimum switches the path acceleration between its bounds instantly; a servo fed such a
+    # step overshoots it (the measured torque exceeds the model's for a few cycles).  The path
+    # parameter s(t) is averaged over this window (0: off), which bounds the jerk and adds about the
+    # window to the duration.
+    smoothing_s: float = 0.04
 
     def validate(self, where: str) -> None:
         require(0 <= self.torque_margin < 0.9, f"{where}.torque_margin", "must lie in [0, 0.9)")
@@ -63,6 +98,7 @@ class PlannerConfig:
         require(all(a > 0 for a in self.acceleration_limits), f"{where}.acceleration_limits", "must be > 0")
         require(20 <= self.gridpoints <= 2000, f"{where}.gridpoints", "must lie in [20, 2000]")
         require(0 < self.baseline_blend <= 0.5, f"{where}.baseline_blend", "must lie in (0, 0.5]")
+        require(0 <= self.smoothing_s <= 0.5, f"{where}.smoothing_s", "must lie in [0, 0.5] s")
 
 
 @dataclass
@@ -87,7 +123,7 @@ class TimedTrajectory:
             return self.q[0]
         if t >= self.duration:
             return self.q[-1]
-        i = int(np.searchsorted(self.t, t) - 1)
+        i = min(max(int(np.searchsorted(self.t, t, side="right")) - 1, 0), len(self.t) - 2)
         u = (t - self.t[i]) / (self.t[i + 1] - self.t[i])
         return self.q[i] + u * (self.q[i + 1] - self.q[i])
 
@@ -97,7 +133,9 @@ class Planner(Protocol):
 
     name: str
 
-    def plan(self, waypoints: np.ndarray, torque_scale: np.ndarray | None = None) -> TimedTrajectory: ...
+    def plan(self, waypoints: np.ndarray, torque_scale: np.ndarray | None = None) -> TimedTrajectory:
+        """Time the path so the model's torque stays within torque_scale x the planning limit (per joint)."""
+        ...
 
 
 class GeometricPath:
@@ -123,9 +161,11 @@ class _Base:
         torque_fn: TorqueFn,
         cfg: PlannerConfig,
         collisions: CollisionChecker | None = None,
+        terms: ToppraTerms | None = None,
     ) -> None:
         self.robot = robot
         self.torque_fn = torque_fn
+        self.terms = terms or ToppraTerms(robot.rnea)
         self.cfg = cfg
         self.collisions = collisions
         lim = robot.limits
@@ -187,34 +227,76 @@ class ToppraPlanner(_Base):
         vel = ta_con.JointVelocityConstraint(np.column_stack([-self.vlim, self.vlim]))
         acc = ta_con.JointAccelerationConstraint(np.column_stack([-self.alim, self.alim]))
 
-        def rigid(q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
-            return self.robot.rnea(q, dq, ddq)
-
+        friction = np.zeros(n) if self.terms.coulomb is None else self.terms.coulomb
         grid = np.linspace(0, 1, self.cfg.gridpoints + 1)
+        bound = scale.copy()  # the toppra constraint's share of the limit, lowered while the full model exceeds
         for it in range(1, self.cfg.max_iterations + 1):
-            lim = self.torque_limit(scale)
-            torque = ta_con.JointTorqueConstraint(rigid, np.column_stack([-lim, lim]), np.zeros(n))
+            lim = self.torque_limit(bound)
+            torque = ta_con.JointTorqueConstraint(self.terms.inv_dyn, np.column_stack([-lim, lim]), friction)
             algo = ta_algo.TOPPRA([vel, acc, torque], path.spline, gridpoints=grid,
                                   parametrizer="ParametrizeConstAccel")
-            jnt = algo.compute_trajectory()
-            if jnt is None:
+            _, sd, _ = algo.compute_parameterization(0.0, 0.0)
+            if sd is None or not np.all(np.isfinite(sd)):
                 raise PlanningError("no feasible timing: the torque limits cannot hold the arm on this path")
-            ts = np.arange(0.0, jnt.duration + 1e-9, self.cfg.sample_period_s)
-            if ts[-1] < jnt.duration:
-                ts = np.append(ts, jnt.duration)
-            traj = self.sample(self.name, ts, jnt(ts), jnt(ts, 1), jnt(ts, 2))
-            ratio = self.excess(traj)
+            traj = self.timed(path, grid, np.maximum(np.asarray(sd, float), 0.0))
+            ratio = self.excess(traj, scale)
             if np.all(ratio <= 1.0 + 1e-3):
                 traj.plan_time_s = time.perf_counter() - t0
                 traj.iterations = it
                 traj.torque_scale = scale
                 return traj
             # Lower the rigid-body bound of each violating joint by its excess and try again.
-            scale = np.where(ratio > 1.0, scale / ratio * 0.995, scale)
+            bound = np.where(ratio > 1.0, bound / ratio * 0.995, bound)
         raise PlanningError(
             f"the full model's torques still exceed the limits after {self.cfg.max_iterations} re-plans "
             f"(worst ratio {float(np.max(ratio)):.3f})"
         )
+
+    def timed(self, path: GeometricPath, grid: np.ndarray, sd: np.ndarray) -> TimedTrajectory:
+        """Sample the path speed profile sd(s) (constant path acceleration between grid points) every
+        period, smoothed over `smoothing_s`."""
+        ds = np.diff(grid)
+        seg_t = 2.0 * ds / np.maximum(sd[:-1] + sd[1:], 1e-9)
+        t_nodes = np.concatenate([[0.0], np.cumsum(seg_t)])
+        seg_a = (sd[1:] ** 2 - sd[:-1] ** 2) / (2.0 * ds)
+        dt = self.cfg.sample_period_s
+        ts = np.arange(0.0, t_nodes[-1] + dt, dt)
+        i = np.clip(np.searchsorted(t_nodes, ts, side="right") - 1, 0, len(ds) - 1)
+        tau = np.clip(ts - t_nodes[i], 0.0, seg_t[i])
+        s = np.clip(grid[i] + sd[i] * tau + 0.5 * seg_a[i] * tau**2, 0.0, 1.0)
+        w = int(round(self.cfg.smoothing_s / dt))
+        if w >= 2:
+            # A moving average of s(t) (held at its ends): velocity and acceleration of the result are
+            # averages of the original's, so no bound is exceeded, and the jerk is bounded.
+            s = np.convolve(np.concatenate([np.zeros(w), s, np.ones(w)]), np.ones(w) / w, mode="valid")
+            s = s[: np.nonzero(s >= 1.0 - 1e-12)[0][0] + 1] if np.any(s >= 1.0 - 1e-12) else s
+        s[-1] = 1.0
+        # toppra holds the speed limits at its grid points only, and the averaging above mixes in the
+        # speeds of neighbouring path points: where a joint is over its speed limit, time is dilated
+        # locally by the excess (smoothed the same way), then whatever is left is scaled out uniformly.
+        s_d = np.gradient(s, dt)
+        over = np.max(np.abs(path.eval(s)[1] * s_d[:, None]) / self.vlim, axis=1)
+        dilation = np.maximum(1.0, over * 1.002)
+        if w >= 2:
+            dilation = np.convolve(np.pad(dilation, w, mode="edge"), np.ones(w) / w, mode="same")[w:-w]
+        if np.any(dilation > 1.0):
+            t_new = np.concatenate([[0.0], np.cumsum(0.5 * (dilation[1:] + dilation[:-1]) * dt)])
+            s = np.interp(np.arange(0.0, t_new[-1] + dt, dt), t_new, s)
+            s[-1] = 1.0
+        for attempt in range(4):
+            s_d = np.gradient(s, dt)
+            s_dd = np.gradient(s_d, dt)
+            s_d[0] = s_d[-1] = 0.0
+            p, dp, ddp = path.eval(s)
+            dq = dp * s_d[:, None]
+            ddq = ddp * s_d[:, None] ** 2 + dp * s_dd[:, None]
+            k = max(1.0, float(np.max(np.abs(dq) / self.vlim)), float(np.sqrt(np.max(np.abs(ddq) / self.alim))))
+            if k <= 1.0 or attempt == 3:
+                break
+            t_old = np.arange(len(s)) * dt
+            s = np.interp(np.arange(0.0, t_old[-1] * k * 1.001 + dt, dt) / (k * 1.001), t_old, s)
+            s[-1] = 1.0
+        return self.sample(self.name, np.arange(len(s)) * dt, p, dq, ddq)
 
 
 class UniformScalingPlanner(_Base):

@@ -21,7 +21,8 @@ def _state_spans(t: np.ndarray, states: list[str]) -> list[tuple[float, float, s
     return spans
 
 
-def plot_force_run(table: pa.Table, path: Path, title: str, setpoint_col: str = "fz_setpoint") -> Path:
+def plot_force_run(table: pa.Table, path: Path, title: str, setpoint_col: str = "fz_setpoint",
+                   force_label: str = "Fz used by the controller") -> Path:
     d = table.to_pydict()
     t = np.asarray(d["t"])
     states = [str(s) for s in d["state"]]
@@ -33,7 +34,7 @@ def plot_force_run(table: pa.Table, path: Path, title: str, setpoint_col: str = 
     for i, s in enumerate(names):
         ax.plot([], [], color=palette(i % 9), lw=8, alpha=0.5, label=s)
     if "sensor_fz" in d:
-        ax.plot(t, d["fz"], color="tab:orange", lw=1, label="Fz used by the controller")
+        ax.plot(t, d["fz"], color="tab:orange", lw=1, label=force_label)
         ax.plot(t, d["sensor_fz"], color="tab:green", lw=1, label="Fz measured (F/T sensor)")
     else:
         ax.plot(t, d["fz"], color="tab:green", lw=1, label="Fz measured (F/T sensor)")
@@ -51,6 +52,56 @@ def plot_force_run(table: pa.Table, path: Path, title: str, setpoint_col: str = 
         ax2.set_title("path on the table (base frame)")
         ax2.set_aspect("equal", adjustable="datalim")
         ax2.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_peg_run(table: pa.Table, path: Path, title: str) -> Path:
+    """The peg-in-hole run like the paper's Fig. 16: peg position and depth, Fz, and (Mx, My) over time,
+    virtual (used by the controller) and measured (F/T sensor) where both were logged, states shaded."""
+    d = table.to_pydict()
+    t = np.asarray(d["t"])
+    states = [str(s) for s in d["state"]]
+    fig, axes = plt.subplots(4, 1, figsize=(10, 10), sharex=True, height_ratios=[1.2, 1, 1, 0.5])
+    palette = plt.get_cmap("Pastel1")
+    names = list(dict.fromkeys(states))
+    for ax in axes[:3]:
+        for t0, t1, s in _state_spans(t, states):
+            ax.axvspan(t0, t1, color=palette(names.index(s) % 9), alpha=0.5, lw=0)
+        ax.grid(alpha=0.3)
+    ax = axes[0]
+    for i, s in enumerate(names):
+        ax.plot([], [], color=palette(i % 9), lw=8, alpha=0.5, label=s)
+    if "depth" in d:
+        ax.plot(t, np.asarray(d["depth"], float) * 1e3, color="tab:green", lw=1.2, label="depth below the mouth")
+    for key, colour in (("tip_x", "tab:blue"), ("tip_y", "tab:purple")):
+        if key in d:
+            v = np.asarray(d[key], float)
+            ax.plot(t, (v - v[0]) * 1e3, color=colour, lw=1, label=f"{key[-1]} - start")
+    ax.set_ylabel("peg [mm]")
+    ax.set_title(title)
+    ax.legend(loc="upper left", fontsize=7, ncol=4)
+    used = "virtual" if "sensor_fz" in d else "F/T sensor"
+    for ax, keys, unit in ((axes[1], ("fz",), "N"), (axes[2], ("mx", "my"), "N·m")):
+        for key, colour in zip(keys, ("tab:red", "tab:orange"), strict=False):
+            ax.plot(t, d[key], color=colour, lw=1, label=f"{key.capitalize()} ({used})")
+            if f"sensor_{key}" in d:
+                ax.plot(t, d[f"sensor_{key}"], color=colour, lw=0.8, ls="--", alpha=0.8,
+                        label=f"{key.capitalize()} (F/T sensor)")
+        if keys == ("fz",) and "fz_setpoint" in d:
+            ax.plot(t, d["fz_setpoint"], "k:", lw=1, label="Fz setpoint")
+        ax.set_ylabel(f"[{unit}]")
+        ax.legend(loc="upper left", fontsize=7, ncol=3)
+    if "contact" in d:
+        kinds = ["free", "stuck_outside", "stuck_inside", "aligned"]
+        code = [kinds.index(c) if c in kinds else -1 for c in d["contact"]]
+        axes[3].step(t, code, where="post", color="k", lw=1)
+        axes[3].set_yticks(range(len(kinds)), kinds, fontsize=7)
+        axes[3].set_ylabel("contact")
+        axes[3].grid(alpha=0.3)
+    axes[3].set_xlabel("time [s]")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -34,7 +34,10 @@ class SimCell:
         self.sensor.disconnect()
 
 
-def make_plant(cfg: CellConfig, seed: int | None = None, scene_kind: str | None = None) -> Plant:
+def make_plant(cfg: CellConfig, seed: int | None = None, scene_kind: str | None = None,
+               tool: str | None = None) -> Plant:
+    """The plant with the scene's fixtures; `tool` ("wipe", "peg") mounts that tool whatever the
+    scene (default: the peg in the peg scene, the wiping tool elsewhere)."""
     profile = load_profile(resolve(cfg.plant))
     if seed is not None:
         profile = replace(profile, seed=seed)
@@ -44,11 +47,14 @@ def make_plant(cfg: CellConfig, seed: int | None = None, scene_kind: str | None 
             f"({profile.sample_period_s}); the simulated controller runs at one rate"
         )
     scene = cfg.scene if scene_kind is None else replace(cfg.scene, kind=scene_kind)
-    return Plant(resolve(cfg.robot.urdf), profile, scene, np.asarray(cfg.robot.home, float))
+    if tool is not None and tool not in ("wipe", "peg"):
+        raise ConfigError(f"unknown tool '{tool}' (wipe or peg)")
+    return Plant(resolve(cfg.robot.urdf), profile, scene, np.asarray(cfg.robot.home, float), tool_kind=tool)
 
 
 def make_sim_cell(
-    cfg: CellConfig, limits: JointLimits, seed: int | None = None, scene_kind: str | None = None
+    cfg: CellConfig, limits: JointLimits, seed: int | None = None, scene_kind: str | None = None,
+    tool: str | None = None,
 ) -> SimCell:
-    plant = make_plant(cfg, seed, scene_kind)
+    plant = make_plant(cfg, seed, scene_kind, tool)
     return SimCell(plant=plant, arm=SimArm(plant, limits), sensor=SimForceSensor(plant), clock=cfg.loop.clock)

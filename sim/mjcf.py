@@ -118,8 +118,11 @@ def _table(scene: SceneConfig, profile: PlantProfile) -> str:
     )
 
 
-def _hole_fixture(scene: SceneConfig, profile: PlantProfile) -> str:
-    """A ring of boxes whose inner faces are tangent to the hole (no chamfer), and a bottom plate."""
+def _hole_fixture(scene: SceneConfig, profile: PlantProfile, tilt: tuple[float, float] = (0.0, 0.0)) -> str:
+    """A ring of boxes whose inner faces are tangent to the hole (no chamfer), and a bottom plate.
+
+    `tilt` (rad, about world x then y, through the centre of the hole's mouth) tilts the whole
+    fixture: the hole axis the peg-in-hole bench hides from the task."""
     cx, cy = scene.hole_center
     r_in = scene.hole_diameter / 2
     depth = scene.hole_depth
@@ -127,7 +130,7 @@ def _hole_fixture(scene: SceneConfig, profile: PlantProfile) -> str:
     n = HOLE_WALL_SEGMENTS
     t = HOLE_WALL_THICKNESS
     half_w = (r_in + t) * math.tan(math.pi / n) * 1.05
-    geoms = [f'<body name="fixture" pos="{cx:.6g} {cy:.6g} {top:.6g}">']
+    geoms = [f'<body name="fixture" pos="{cx:.6g} {cy:.6g} {top:.6g}" euler="{tilt[0]:.9g} {tilt[1]:.9g} 0">']
     contact = f'friction="{profile.tool.peg_friction:.6g} 0.005 0.0001" solref="0.002 1" solimp="0.95 0.99 0.0005"'
     for i in range(n):
         a = 2 * math.pi * i / n
@@ -145,15 +148,23 @@ def _hole_fixture(scene: SceneConfig, profile: PlantProfile) -> str:
     return "".join(geoms)
 
 
-def build_mjcf(urdf: Path, profile: PlantProfile, scene: SceneConfig, physics_dt: float) -> BuiltScene:
-    kind = "peg" if scene.kind == "peg" else "wipe"
+def build_mjcf(
+    urdf: Path, profile: PlantProfile, scene: SceneConfig, physics_dt: float,
+    fixture_tilt: tuple[float, float] = (0.0, 0.0),
+    tool_kind: str | None = None,
+) -> BuiltScene:
+    # The peg scene always carries the peg; other scenes the wiping tool unless `tool_kind` names
+    # one ("wipe" or "peg"): the free scene collects data and calibrates with either tool mounted.
+    kind = tool_kind or ("peg" if scene.kind == "peg" else "wipe")
+    if kind not in ("wipe", "peg"):
+        raise ValueError(f"unknown tool {kind!r} (wipe or peg)")
     opening, closing = _arm_bodies(urdf, profile)
     tool_xml, tcp = _tool(profile, kind)
     world = ""
     if scene.kind == "table":
         world = _table(scene, profile)
     elif scene.kind == "peg":
-        world = _hole_fixture(scene, profile)
+        world = _hole_fixture(scene, profile, fixture_tilt)
     # The servo's PD acts through position actuators so that MuJoCo integrates its stiffness and
     # damping implicitly (an explicit PD on the light wrist joints chatters against stiff contacts);
     # a motor per joint carries the servo's feedforward and integral terms.

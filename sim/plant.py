@@ -45,13 +45,17 @@ class Plant:
         scene: SceneConfig,
         q0: np.ndarray,
         physics_dt: float | None = None,
+        fixture_tilt: tuple[float, float] = (0.0, 0.0),
+        tool_kind: str | None = None,
     ) -> None:
         self.profile = profile
+        self.fixture_tilt = fixture_tilt  # rad about world x, y: the peg scene's hole axis (bench randomisation)
         self.scene = scene
         self.dt = profile.sample_period_s
         h = physics_dt if physics_dt is not None else profile.physics_dt_s
         self.substeps = max(1, round(self.dt / h))
-        self.built: BuiltScene = build_mjcf(urdf, profile, scene, self.dt / self.substeps)
+        self.built: BuiltScene = build_mjcf(urdf, profile, scene, self.dt / self.substeps, fixture_tilt,
+                                               tool_kind)
         self._hb, self._hb1, self._hb2 = _hermite_basis(self.substeps)
         self.model = mujoco.MjModel.from_xml_string(self.built.xml)
         self.data = mujoco.MjData(self.model)
@@ -85,6 +89,7 @@ class Plant:
         self._flange_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "link_6")
         self._ft_site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "ft_site")
         self.external_wrench: np.ndarray | None = None  # (6,) world-frame force/torque applied at the TCP
+        self._xfrc_set = False  # a hand's wrench is in xfrc_applied
         self._pad_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "pad")
         self._pad_body = int(self.model.geom_bodyid[self._pad_geom]) if self._pad_geom >= 0 else -1
         self._pad_mu = profile.tool.pad_friction
@@ -196,10 +201,13 @@ class Plant:
                 + self._fs * np.exp(-((v / self._vs) ** 2))
                 + self._ra * np.sin(self._rc * q + self.ripple_phase)
             )
-            if self._pad_body >= 0 or self.external_wrench is not None:
+            if self._pad_body >= 0 or self.external_wrench is not None or self._xfrc_set:
                 # Cartesian body forces (xfrc_applied), not joint-space ones: the F/T sensor reads
                 # body interaction forces and must feel both the friction and a hand on the tool.
+                # (Cleared once more after a hand lets go: a tool without a pad, the peg, would
+                # otherwise keep the last load forever.)
                 d.xfrc_applied[:] = 0.0
+                self._xfrc_set = self.external_wrench is not None
                 if self._pad_body >= 0:
                     self._wipe_friction()
                 if self.external_wrench is not None:

@@ -586,7 +586,51 @@ def bench_model(
         "fit_500k_s": round(forest.fit_seconds, 2), "fit_samples": len(big), "fit_physics_s": round(t_phys, 2),
         "fit_trees": forest.trees(), "nthread": nthread,
         "batch_samples_per_s": round(batch_rate, 0), "batch_samples": len(tests),
+        **bench_virtual_sensor(cfg, robot, model, tests, min(calls, 3000)),
     }
+
+
+def bench_virtual_sensor(cfg: CellConfig, robot: RobotModel, model: LearnedModel, stream: Samples,
+                         calls: int = 3000) -> dict[str, Any]:
+    """One control step of the virtual sensor (observer + wrench mapping, `VirtualForceSource.read`)
+    over a recorded stream, per route; `virtual_sensor_step_p99_us` is the configured route's.
+
+    The learned map here is fitted on the stream itself (the Jacobian's wrench as the target) with the
+    calibration's tree settings: the timing depends on the trees' number and depth, not their values."""
+    from cell.observer import make_observer
+    from cell.virtual_sensor import VirtualForceSource
+    from cell.wrench_map import JacobianMap, LearnedMap, fit_learned_axes
+    from drivers.interfaces import ArmState
+
+    vs = cfg.virtual_sensor
+    dt = cfg.loop.period_s
+    n = min(calls, len(stream))
+    states = [ArmState(t=k * dt, q=stream.q[k], dq=stream.dq[k], tau=stream.tau[k]) for k in range(n)]
+    R = np.array([0.8, 1.0, 0.6, 0.2, 0.2, 0.25]) ** 2  # typical calibrated residual variances [N·m]^2
+    jac = JacobianMap(robot, np.asarray(vs.wrench_point, float), vs.singular_sigma, vs.max_damping)
+    obs = make_observer("kalman", model, dt, R, np.asarray(vs.process_noise_nm), vs.momentum_gain, vs.rebias_window_s,
+                            vs.innovation_gate)
+    taus = np.array([obs.update(s) for s in states])
+    wrench = np.array([jac.map(s.q, t).wrench for s, t in zip(states, taus, strict=True)])
+    boosters = fit_learned_axes(stream.q[:n], taus, wrench)
+    warm = min(50, n // 10)
+    out: dict[str, Any] = {}
+    for kind in ("kalman", "momentum"):
+        for mapping in ("jacobian", "learned"):
+            o = make_observer(kind, model, dt, R, np.asarray(vs.process_noise_nm), vs.momentum_gain, vs.rebias_window_s,
+                            vs.innovation_gate)
+            src = VirtualForceSource(o, jac if mapping == "jacobian" else LearnedMap(boosters, jac, robot.n))
+            times = np.empty(n)
+            for k, st in enumerate(states):
+                ns0 = time.perf_counter_ns()
+                src.read(st)
+                times[k] = (time.perf_counter_ns() - ns0) / 1e3
+            t = times[warm:]
+            out[f"{kind}+{mapping}"] = {"p50_us": round(float(np.percentile(t, 50)), 1),
+                                        "p99_us": round(float(np.percentile(t, 99)), 1)}
+    chosen = f"{vs.observer}+{vs.mapping}"
+    return {"virtual_sensor_route": chosen, "virtual_sensor_step_p50_us": out[chosen]["p50_us"],
+            "virtual_sensor_step_p99_us": out[chosen]["p99_us"], "virtual_sensor_routes": out}
 
 
 def _jsonable(obj: Any) -> Any:

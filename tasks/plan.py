@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 from cell.config import CellConfig  # noqa: E402
 from cell.configio import load_dataclass, read_yaml, require  # noqa: E402
 from cell.loop import OpenCell  # noqa: E402
-from cell.planner import PLANNERS, PlannerConfig, PlanningError, TimedTrajectory, TorqueFn  # noqa: E402
+from cell.planner import PLANNERS, PlannerConfig, PlanningError, TimedTrajectory, ToppraTerms, TorqueFn  # noqa: E402
 from cell.recorder import read_log  # noqa: E402
 from cell.robot import RobotModel  # noqa: E402
 from tasks.play import PlayTask  # noqa: E402
@@ -37,10 +37,15 @@ class PlanFile:
     # Free-space moves in a guarded cell are faster than force tasks: the cell's TCP speed limit is
     # raised to this for the plan runs (the joint speed and torque limits are not touched).
     max_tcp_speed: float = 2.5
+    # The first validation run of each plan is planned to this share of the planning limit (see
+    # plan_and_validate); later runs use the measured model error.
+    first_run_torque_scale: float = 0.8
 
     def validate(self, where: str) -> None:
         require(bool(self.paths), f"{where} paths", "must name at least one path")
         require(0 < self.max_tcp_speed <= 5.0, f"{where} max_tcp_speed", "must lie in (0, 5] m/s")
+        require(0.3 <= self.first_run_torque_scale <= 1.0, f"{where} first_run_torque_scale", "must lie in [0.3, 1]")
+        require(1 <= self.max_validation_rounds <= 20, f"{where} max_validation_rounds", "must lie in [1, 20]")
         for name, pts in self.paths.items():
             require(len(pts) >= 2, f"{where} paths.{name}", "needs at least a start and an end")
             for i, p in enumerate(pts):
@@ -70,6 +75,7 @@ class Execution:
     peak_tau: np.ndarray
     run_dir: str | None
     rounds: int
+    stops: int = 0  # validation runs that ended in a safety stop
 
 
 def measured_peak(run_dir: str | None, n: int) -> np.ndarray:
@@ -107,43 +113,78 @@ def plan_and_validate(
     open_cell: Callable[[], tuple[OpenCell, Any]],
     collisions: Any,
     rounds: int,
+    terms: ToppraTerms | None = None,
+    first_scale: float = 0.8,
 ) -> Execution:
-    planner = PLANNERS[planner_name](robot, torque_fn, pcfg, collisions)
+    """Plan, execute, measure, correct, re-plan.
+
+    The first run is planned to `first_scale` x the planning limit: the model is least trusted where
+    it has not been checked (a time-optimal plan accelerates harder than any training motion), and a
+    saturated motor on the first try is a safety stop on a real arm.  Each run measures, per joint,
+    how much torque the plant needed against the model's prediction (`factor`); the next plan bounds
+    the model's torque by planning limit / factor, so it is as fast as the measured model error
+    allows.  It stops when a run was within the limits and the corrected plan would not be faster; a
+    run that exceeds a limit is tightened (never kept), and the fastest run within the limits is the result.
+    """
+    planner = PLANNERS[planner_name](robot, torque_fn, pcfg, collisions, terms)
     w = np.radians(np.asarray(waypoints_deg, float))
     effort = robot.limits.effort
-    scale = np.ones(robot.n)
+    scale = np.full(robot.n, first_scale)
+    good = np.zeros(robot.n)  # per joint: the largest scale that ran within the limits
+    bad = np.full(robot.n, np.inf)  # and the smallest that did not
+    max_step = 0.1
+    best: Execution | None = None
     last: Execution | None = None
+    stops = 0
     for r in range(1, rounds + 1):
         try:
             traj = planner.plan(w, scale)
         except PlanningError as exc:
             if last is None:
                 raise
-            # Tightening for the model's error has made the path infeasible: keep the last attempt.
-            log.warning("%s/%s: re-plan %d impossible (%s); keeping round %d", name, planner_name, r, exc, r - 1)
-            return last
+            # Tightening for the model's error has made the path infeasible: keep what ran.
+            log.warning("%s/%s: re-plan %d impossible (%s); keeping the best run", name, planner_name, r, exc)
+            break
+        no_gain = last is not None and traj.duration > last.traj.duration - 0.5 * pcfg.sample_period_s
+        if last is not None and last.outcome == "done" and no_gain:
+            break  # the last run was within the limits and the correction buys no time: done
         summary = execute(traj, cfg, robot, open_cell)
         peak = measured_peak(summary.get("run_dir"), robot.n)
         ratio = peak / effort
         ok = summary["outcome"] == "done" and bool(np.all(ratio <= 1.0))
+        stops += summary["outcome"] != "done"
         log.info("%s/%s round %d: planned %.3f s, executed %s s, peak torque ratio %.3f (%s)", name, planner_name,
                  r, traj.duration, summary.get("elapsed_s"), float(np.nanmax(ratio)), summary["outcome"])
         last = Execution(traj, summary["outcome"] if ok else "limit_exceeded", summary.get("elapsed_s"),
-                         peak, summary.get("run_dir"), r)
-        if ok or r == rounds:
-            return last
-        # The plant needed more torque than the model predicted (or stopped).  For each joint over
-        # the planning limit, the model under-predicts by measured / predicted peak: bound the
-        # model's torque by the planning limit divided by that factor, and re-plan.  A saturated
-        # motor reads at most its limit, so the factor is a lower bound; repeated rounds close in.
+                         peak, summary.get("run_dir"), r, stops)
+        if ok and (best is None or (last.elapsed_s or np.inf) < (best.elapsed_s or np.inf)):
+            best = last
+        # Per joint: the plant's torque over the model's, where the joint was loaded enough to tell.
         planning_limit = planner.torque_limit()
         predicted = np.max(np.abs(torque_fn(traj.q, traj.dq, traj.ddq)), axis=0)
-        over = peak > planning_limit
         factor = peak / np.maximum(predicted, 1e-6)
-        factor = np.where(peak >= 0.99 * effort, factor * 1.5, factor)  # clamped reading: it needed more
-        wanted = predicted / (planning_limit * factor) * 0.95  # model-torque bound / planning limit
-        scale = np.where(over, np.minimum(scale, wanted), scale)
-    raise AssertionError("unreachable")
+        loaded = predicted > 0.3 * planning_limit
+        if not ok:
+            factor = np.where(peak >= 0.99 * effort, factor * 1.5, factor)  # a clamped reading: it needed more
+        # The model may use the whole planning limit only where it has been shown not to under-predict.
+        wanted = np.where(loaded, np.minimum(1.0, 0.98 / np.maximum(factor, 1e-6)), scale if ok else 1.0)
+        # The error grows with the accelerations, so a factor measured on a slower run is optimistic for
+        # a faster one: speed up by at most `max_step` per round and never past half-way to a scale that
+        # has already exceeded a limit (bisection between the known-good and the known-bad scale).
+        if ok:
+            good = np.maximum(good, scale)
+            nxt = np.clip(wanted, scale, scale + max_step)
+            scale = np.where(np.isfinite(bad), np.minimum(nxt, 0.5 * (good + bad)), nxt)
+        else:
+            over = peak >= 0.99 * cfg.safety.joint_torque_fraction * effort
+            over = over if over.any() else ratio >= np.nanmax(ratio)  # stopped for another reason: the worst joint
+            bad = np.where(over, np.minimum(bad, scale), bad)
+            scale = np.where(over, np.where(good > 0, 0.5 * (good + scale), np.minimum(wanted, scale)), scale)
+    if best is not None:
+        best.rounds, best.stops = last.rounds if last else best.rounds, stops
+        return best
+    assert last is not None
+    return last
 
 
 def run_plans(
@@ -156,6 +197,7 @@ def run_plans(
     collisions: Any,
     out_dir: Path,
     only: list[str] | None = None,
+    terms: ToppraTerms | None = None,
 ) -> dict[str, Any]:
     results: dict[str, Any] = {}
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -163,9 +205,9 @@ def run_plans(
     for name in names:
         pts = plan_file.paths[name]
         base = plan_and_validate(name, pts, "uniform", cfg, robot, torque_fn, plan_file.planner, open_cell,
-                                 collisions, plan_file.max_validation_rounds)
+                                 collisions, plan_file.max_validation_rounds, terms, plan_file.first_run_torque_scale)
         opt = plan_and_validate(name, pts, "toppra", cfg, robot, torque_fn, plan_file.planner, open_cell,
-                                collisions, plan_file.max_validation_rounds)
+                                collisions, plan_file.max_validation_rounds, terms, plan_file.first_run_torque_scale)
         effort = robot.limits.effort
         improvement = None
         if base.elapsed_s and opt.elapsed_s:
@@ -183,6 +225,7 @@ def run_plans(
             "plan_time_s": opt.traj.plan_time_s,
             "planner_iterations": opt.traj.iterations,
             "validation_rounds": opt.rounds,
+            "validation_safety_stops": base.stops + opt.stops,
             "runs": [base.run_dir, opt.run_dir],
         }
         plot_path = out_dir / f"{name}.png"

@@ -6,15 +6,80 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from cell.config import CellConfig
 from cell.configio import to_plain
-from cell.loop import ControlLoop, OpenCell, Task
+from cell.loop import ControlLoop, ForceSource, OpenCell, Task
 from cell.recorder import Recorder, new_run_dir, read_log
 from cell.report import plot_force_run
 from cell.robot import RobotModel
 from cell.safety import SafetyMonitor
+from drivers.interfaces import ArmState, Wrench
 
 log = logging.getLogger(__name__)
+
+# The states in which a task regulates its force: where virtual and measured are scored (tasks may
+# declare `regulated_states` themselves; without either, every sample in contact counts).
+REGULATED_STATES: dict[str, tuple[str, ...]] = {"wipe": ("wipe",)}
+CONTACT_N = 5.0
+
+
+class GroundTruthTap:
+    """Wraps the ground-truth F/T source: pairs each cycle's measured wrench with the virtual one the
+    task used that cycle (the loop reads the task's source first) and the task's state."""
+
+    def __init__(self, truth: ForceSource, virtual: ForceSource, task: Task) -> None:
+        self.truth = truth
+        self.virtual = virtual
+        self.task = task
+        self.name = truth.name
+        self.states: list[str] = []
+        self.measured: list[np.ndarray] = []
+        self.estimated: list[np.ndarray] = []
+
+    def read(self, state: ArmState) -> Wrench:
+        w = self.truth.read(state)
+        last = getattr(self.virtual, "last", None)
+        if last is not None:
+            self.states.append(self.task.state_name)
+            self.measured.append(w.vector)
+            self.estimated.append(last.vector)
+        return w
+
+    def rebias(self) -> None:
+        self.truth.rebias()
+
+    def summary(self, task_summary: dict[str, Any]) -> dict[str, Any]:
+        """Virtual against measured, and the measured force against the setpoint, on regulated samples."""
+        if not self.measured:
+            return {}
+        meas, est = np.asarray(self.measured), np.asarray(self.estimated)
+        regulated = getattr(self.task, "regulated_states", REGULATED_STATES.get(self.task.name))
+        if regulated:
+            rows = np.isin(np.asarray(self.states), list(regulated))
+        else:
+            rows = np.linalg.norm(meas[:, :3], axis=1) > CONTACT_N
+        if not rows.any():
+            return {"virtual_vs_sensor_samples": 0}
+        err = est[rows] - meas[rows]
+        out: dict[str, Any] = {
+            "virtual_vs_sensor_samples": int(rows.sum()),
+            "virtual_vs_sensor_fz_mae_n": float(np.mean(np.abs(err[:, 2]))),
+            "virtual_vs_sensor_fz_mean_error_n": float(np.mean(err[:, 2])),
+            "virtual_vs_sensor_fz_std_n": float(np.std(err[:, 2])),
+            "virtual_vs_sensor_mx_mae_nm": float(np.mean(np.abs(err[:, 3]))),
+            "virtual_vs_sensor_my_mae_nm": float(np.mean(np.abs(err[:, 4]))),
+        }
+        setpoint = task_summary.get("force_setpoint_n")
+        if setpoint is not None and "force_mae_n" in task_summary:
+            # With the virtual sensor in the loop the task scores what it saw; the cell's figure is
+            # what the F/T sensor measured against the setpoint.
+            e = meas[rows, 2] - float(setpoint)
+            out.update(virtual_force_mae_n=task_summary["force_mae_n"], force_mae_n=float(np.mean(np.abs(e))),
+                       force_std_n=float(np.std(e)), force_max_abs_error_n=float(np.max(np.abs(e))),
+                       force_mean_n=float(np.mean(meas[rows, 2])))
+        return out
 
 
 def run_task(
@@ -34,9 +99,10 @@ def run_task(
         recorder.write_config(to_plain(cfg))
         log.info("recording to %s", run_dir)
     safety = SafetyMonitor(cfg.safety, robot, cfg.loop.period_s)
+    tap = GroundTruthTap(cell.ground_truth, cell.force, task) if cell.ground_truth is not None else None
     loop = ControlLoop(
         cell.arm, cell.force, task, safety, cell.ticker, recorder, cfg.loop.period_s, max_duration_s,
-        cfg.loop.slow_cycle_fraction, ground_truth=cell.ground_truth,
+        cfg.loop.slow_cycle_fraction, ground_truth=tap,
     )
     result = loop.run()
     summary: dict[str, Any] = dict(task.summary())
@@ -53,14 +119,31 @@ def run_task(
         timing=result.timing,
         safety_stop=result.outcome == "safety_stop",
     )
+    if tap is not None:
+        summary.update(tap.summary(summary))
+    source_summary = getattr(cell.force, "summary", None)
+    if callable(source_summary):
+        summary.update(source_summary())
     if extra_summary:
         summary.update(extra_summary)
     if recorder is not None and run_dir is not None:
         summary["run_dir"] = str(run_dir)
         if recorder.rows_written:
             try:
-                png = plot_force_run(read_log(run_dir), run_dir / "plot.png",
-                                     f"{task.name} on the {cell.kind} cell: {summary['outcome']}")
+                table = read_log(run_dir)
+                # A task may summarise its own log (e.g. virtual-vs-measured wrench errors) and draw
+                # its own figure; the default is the normal force against its setpoint.
+                log_summary = getattr(task, "log_summary", None)
+                if callable(log_summary):
+                    summary.update(log_summary(table))
+                plot = getattr(task, "plot_run", None)
+                title = f"{task.name} on the {cell.kind} cell: {summary['outcome']}"
+                if callable(plot):
+                    png = plot(table, run_dir / "plot.png", title)
+                else:
+                    png = plot_force_run(table, run_dir / "plot.png", title, force_label=(
+                        "Fz virtual sensor (in the loop)" if cell.force.name == "virtual"
+                        else "Fz used by the controller"))
                 summary["plot"] = str(png)
             except Exception as exc:  # a plot must never lose the recording or the summary
                 log.error("could not draw the plot: %s", exc)

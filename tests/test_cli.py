@@ -96,9 +96,10 @@ def test_bad_arguments_exit_2(capsys):
     assert "invalid choice" in capsys.readouterr().err
 
 
-def test_virtual_force_source_is_refused_clearly_until_it_exists(capsys):
-    assert main(["run", "wipe", "--force-source", "virtual", "--no-record"]) == 2
-    assert "virtual force sensor" in capsys.readouterr().err
+def test_virtual_force_source_without_artefacts_is_refused_on_the_real_cell(capsys):
+    assert main(["run", "wipe", "--force-source", "virtual", "--cell", "real", "--no-record"]) == 2
+    err = capsys.readouterr().err
+    assert "virtual force sensor" in err and "main.py prepare" in err
 
 
 def test_status_prints_the_simulated_arm(capsys):

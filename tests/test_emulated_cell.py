@@ -127,7 +127,8 @@ def test_ctrl_c_in_a_terminal_stops_the_arm_and_keeps_the_recording(tmp_path):
     from cell.config import ROOT
 
     proc = subprocess.Popen([sys.executable, str(ROOT / "main.py"), "-q", "run", "wipe", "--cell", "emulated",
-                             "--json"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             "--force-source", "sensor", "--json"], cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
                             start_new_session=True,
                             # The runner may ignore SIGINT (a background job does); a terminal's
                             # process would not, so restore the default before exec.

@@ -1,0 +1,133 @@
+"""Calibration of the virtual sensor and `prepare`: the report, idempotence, refusing a mismatched
+artefact, the operator prompt on the real cell, and the wiping task with the virtual sensor in the loop."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+import yaml
+
+from cell.config import CONFIG_DIR
+from cell.recorder import read_log
+from cell.virtual_sensor import build_virtual_source
+from drivers.errors import DataError
+from main import calibration_cells, main, robot_for
+from tasks.calibrate import OperatorLoads, artefacts_missing, prepare
+from tests.vsfixtures import artefacts
+
+
+@pytest.fixture(scope="module")
+def vs():
+    return artefacts()
+
+
+def test_calibration_reports_every_route_on_held_out_postures(vs):
+    steps = vs["prepare"]["steps"]
+    assert steps["train"]["done"] and steps["calibrate"]["done"]
+    doc = json.loads((vs["cfg"].virtual_sensor.path("calibration", "wipe") / "calibration.json").read_text())
+    rep = doc["report"]
+    assert set(rep["routes"]) == {"kalman+jacobian", "kalman+learned", "momentum+jacobian", "momentum+learned"}
+    assert rep["holdout_postures"] == [5] and rep["heldout_samples"] > 100 and rep["train_samples"] > 300
+    # The loads really were 0-75 N presses, and the configured route reads them well on a posture
+    # it never saw (a loose bound: this is a small model on a reduced calibration).
+    assert rep["sensor_fz_range_n"][1] > 40
+    assert rep["route"] == "kalman+jacobian" and rep["fz_mae_n"] < 3.0
+    for r in rep["routes"].values():
+        assert {"fz_mae_n", "mx_mae_nm", "my_mae_nm"} <= set(r)
+    # The metadata names what the calibration belongs to.
+    assert doc["robot"] == "tm5-700" and doc["tool"]["name"] == "wipe" and len(doc["model"]["sha256"]) == 64
+    assert len(doc["measurement_var"]) == 6 and all(v > 0 for v in doc["measurement_var"])
+    assert {"learned_kalman_fz.ubj", "learned_momentum_my.ubj"} <= {
+        p.name for p in vs["cfg"].virtual_sensor.path("calibration", "wipe").iterdir()}
+
+
+def test_prepare_skips_what_is_present_and_matching(vs):
+    cfg, robot = vs["cfg"], vs["robot"]
+    assert artefacts_missing(cfg, robot, "wipe") == ""
+
+    def must_not_open():
+        raise AssertionError("prepare opened a cell although everything was in place")
+
+    out = prepare(cfg, "wipe", robot, must_not_open, must_not_open, lambda h: None)
+    assert not any(step["done"] for step in out["steps"].values()), out["steps"]
+
+
+def _copy_calibration(vs, tmp_path):
+    src = vs["cfg"].virtual_sensor.path("calibration", "wipe")
+    dst = tmp_path / "cal"
+    shutil.copytree(src, dst)
+    return dst
+
+
+@pytest.mark.parametrize(
+    "mutate, needle",
+    [
+        (lambda d: d["tool"].update(mass=0.85), "tool mass"),
+        (lambda d: d["tool"].update(name="peg"), "tool name"),
+        (lambda d: d.update(robot="ur5e"), "robot 'ur5e'"),
+        (lambda d: d.update(urdf_sha256="0" * 64), "URDF sha256 000000000000"),
+        (lambda d: d["model"].update(sha256="f" * 64), "torque model H1 sha256 ffffffffffff"),
+    ],
+)
+def test_a_mismatched_calibration_is_refused_in_one_line(vs, tmp_path, mutate, needle):
+    cfg = vs["cfg"]
+    cal = _copy_calibration(vs, tmp_path)
+    doc = json.loads((cal / "calibration.json").read_text())
+    mutate(doc)
+    (cal / "calibration.json").write_text(json.dumps(doc))
+    with pytest.raises(DataError) as exc:
+        build_virtual_source(cfg.virtual_sensor, vs["robot"], "wipe", cfg.loop.period_s, calibration_dir=cal)
+    msg = str(exc.value)
+    assert needle in msg and "main.py calibrate --tool wipe" in msg and "\n" not in msg
+
+
+def test_the_peg_tool_does_not_take_the_wiping_calibration(vs):
+    cfg = vs["cfg"]
+    peg = robot_for(cfg, "peg")
+    with pytest.raises(DataError, match="tool name wipe, this cell's tool has peg"):
+        build_virtual_source(cfg.virtual_sensor, peg, "peg", cfg.loop.period_s,
+                             model_dir=cfg.virtual_sensor.path("model", "wipe"),
+                             calibration_dir=cfg.virtual_sensor.path("calibration", "wipe"))
+
+
+def test_real_cell_without_artefacts_is_refused_naming_prepare(capsys):
+    # The working directory is an empty temporary folder: no artefacts; nothing is built for a real cell.
+    assert main(["run", "wipe", "--cell", "real", "--no-record"]) == 2
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and "main.py prepare --tool wipe --cell real" in lines[0] and "Traceback" not in err
+
+
+def test_the_real_cell_asks_the_operator_on_the_cli():
+    asked = []
+    loads = OperatorLoads(prompt=lambda text: asked.append(text) or "")
+    loads.before_posture(2, 9, 20.0)
+    assert len(asked) == 1 and "posture 3/9" in asked[0] and "20 s" in asked[0]
+    assert loads.update(3.0) == (-1, True) and not loads.scripted
+    cfg, robot = artefacts()["cfg"], artefacts()["robot"]
+    opener, applier = calibration_cells(cfg, "real", "wipe", robot, None)
+    assert isinstance(applier(None), OperatorLoads)
+
+
+@pytest.mark.slow
+def test_wipe_runs_with_the_virtual_sensor_in_the_loop(vs, tmp_path, capsys):
+    cfg = vs["cfg"]
+    raw = yaml.safe_load((CONFIG_DIR / "cell.yaml").read_text())
+    raw["robot"]["urdf"] = str(CONFIG_DIR / raw["robot"]["urdf"])
+    raw["plant"] = str(CONFIG_DIR / raw["plant"])
+    raw["virtual_sensor"].update(model_dir=cfg.virtual_sensor.model_dir,
+                                 calibration_dir=cfg.virtual_sensor.calibration_dir)
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    assert main(["-q", "run", "wipe", "--config", str(path), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert s["force_source"] == "virtual" and s["virtual_sensor"] == "kalman+jacobian"
+    assert s["outcome"] == "done" and not s["safety_stop"]
+    # Virtual against measured over the wiping samples (small model: loose bounds; the figures of the
+    # shipped artefacts are in the README).
+    assert s["virtual_vs_sensor_samples"] > 500
+    assert s["virtual_vs_sensor_fz_mae_n"] < 5.0 and s["force_mae_n"] < 6.0
+    log = read_log(tmp_path / s["run_dir"]) if not s["run_dir"].startswith("/") else read_log(s["run_dir"])
+    assert {"fz", "sensor_fz", "sensor_mx"} <= set(log.column_names)
