@@ -1,0 +1,177 @@
+"""Peg-in-hole: contact states from staged wrenches, config checks, and short runs on the simulated cell."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from drivers.errors import ConfigError
+from tasks.peg import Contact, PegConfig, classify, load_peg_config, rim_points, wrench_errors
+
+
+@pytest.fixture
+def pcfg() -> PegConfig:
+    return PegConfig()
+
+
+class TestContactStates:
+    """Each of the paper's contact scenarios (Fig. 13) from a staged (Fz, Mx, My) and the kinematic depths
+    of the lowest / highest point of the peg's bottom rim below the mouth."""
+
+    def test_free_in_the_air(self, pcfg):
+        assert classify(0.5, 0.02, -0.03, -0.005, -0.009, pcfg) == Contact.FREE
+
+    def test_free_while_sliding_into_the_hole(self, pcfg):
+        assert classify(1.0, 0.05, 0.0, 0.010, 0.010, pcfg) == Contact.FREE
+
+    def test_stuck_outside_on_the_rim(self, pcfg):
+        # The tilted peg's lowest point rests on the rim or plate: touching, nothing below the mouth.
+        assert classify(15.0, 0.2, -0.1, -0.0005, -0.0045, pcfg) == Contact.STUCK_OUTSIDE
+
+    def test_stuck_outside_by_moment_alone(self, pcfg):
+        assert classify(1.0, 0.9, 0.0, 0.0, -0.004, pcfg) == Contact.STUCK_OUTSIDE
+
+    def test_stuck_inside_lead_edge_in_face_on_the_far_rim(self, pcfg):
+        # The tilted entry: the lead edge is below the mouth, the face rests on the far rim.
+        assert classify(12.0, 0.0, 0.3, 0.0009, -0.0036, pcfg) == Contact.STUCK_INSIDE
+
+    def test_stuck_inside_one_side_touching(self, pcfg):
+        assert classify(12.0, 0.1, 1.5, 0.011, 0.011, pcfg) == Contact.STUCK_INSIDE
+
+    def test_aligned_pushing_along_the_axis(self, pcfg):
+        assert classify(20.0, 0.1, -0.1, 0.015, 0.015, pcfg) == Contact.ALIGNED
+
+    def test_missing_reading_is_never_a_contact_outside(self, pcfg):
+        assert classify(float("nan"), 0.0, 0.0, 0.0, -0.004, pcfg) == Contact.FREE
+        assert classify(float("nan"), 0.0, 0.0, 0.02, 0.02, pcfg) == Contact.ALIGNED
+
+    def test_rim_points_of_a_tilted_peg(self):
+        # Peg tilted 10 deg: its rim's lowest and highest points are r sin(10 deg) below / above the centre.
+        import pinocchio as pin
+
+        from cell.trajectory import TOOL_DOWN
+
+        pose = pin.SE3(pin.exp3(np.array([0.0, 1.0, 0.0]) * np.radians(10)) @ TOOL_DOWN, np.array([0.1, 0.2, 0.3]))
+        low, high = rim_points(pose, 0.0107)
+        assert low[2] == pytest.approx(0.3 - 0.0107 * np.sin(np.radians(10)), abs=1e-9)
+        assert high[2] == pytest.approx(0.3 + 0.0107 * np.sin(np.radians(10)), abs=1e-9)
+        assert np.linalg.norm(low - pose.translation) == pytest.approx(0.0107)
+
+
+class TestConfig:
+    def test_defaults_are_valid(self):
+        load_peg_config(None, "tasks.peg")
+
+    def test_bad_threshold_names_the_field(self):
+        with pytest.raises(ConfigError, match="tasks.peg.probe_force_n"):
+            load_peg_config({"probe_force_n": 200.0}, "tasks.peg")
+
+    def test_entry_tilt_must_be_below_the_tilt_limit(self):
+        with pytest.raises(ConfigError, match="tasks.peg.entry_tilt_deg"):
+            load_peg_config({"entry_tilt_deg": 20.0}, "tasks.peg")
+
+    def test_unknown_key(self):
+        with pytest.raises(ConfigError, match="unknown key 'depth'"):
+            load_peg_config({"depth": 0.03}, "tasks.peg")
+
+
+def test_wrench_errors_only_over_the_insertion():
+    log = {
+        "state": ["tare", "approach", "insert", "retract"],
+        "mx": [9.0, 0.1, 0.2, 9.0], "sensor_mx": [0.0, 0.0, 0.0, 0.0],
+        "my": [0.0, 0.0, 0.0, 0.0], "sensor_my": [0.0, 0.1, 0.3, 0.0],
+        "fz": [0.0, 1.0, 20.0, 0.0], "sensor_fz": [0.0, 2.0, 18.0, 0.0],
+    }
+    out = wrench_errors(log)
+    assert out["wrench_error_samples"] == 2
+    assert out["mae_mx_nm"] == pytest.approx(0.15)
+    assert out["mae_my_nm"] == pytest.approx(0.2)
+    assert out["mae_fz_n"] == pytest.approx(1.5)
+
+
+# --------------------------------------------------------------------------------------- on the sim
+def _trial(cfg, offset=(0.0, 0.0), tilt=(0.0, 0.0), **overrides):
+    from main import robot_for
+    from sim.bench_peg import run_trial
+
+    robot = robot_for(cfg, "peg")
+    pcfg = replace(PegConfig(), **overrides)
+    return run_trial(cfg, robot, pcfg, np.asarray(offset), np.radians(tilt), 3, None, None)
+
+
+@pytest.mark.slow
+def test_aligned_peg_is_inserted_and_retracted(cfg):
+    tr = _trial(cfg, offset=(0.0015, -0.001))
+    assert tr.outcome == "done", tr.reason
+    assert tr.success and tr.true_depth_m >= 0.026
+    assert tr.peak_force_n < 80
+
+
+@pytest.mark.slow
+def test_a_jam_that_cannot_be_cleared_fails_by_name_with_the_arm_stopped(cfg, monkeypatch):
+    # A hole only 12 mm deep can never reach the 27 mm target: the peg bottoms out and stalls.
+    cfg.scene = replace(cfg.scene, hole_depth=0.012)
+    import sim.bench_peg as bench
+
+    holders = []
+    real = bench.SimCell
+
+    def keep(*a, **k):
+        h = real(*a, **k)
+        holders.append(h)
+        return h
+
+    monkeypatch.setattr(bench, "SimCell", keep)
+    tr = _trial(cfg, max_realigns=2, free_insert_speed_mps=0.002)  # a gentle feed: the jam, not the impact
+    assert tr.outcome == "failed"
+    assert "jammed at depth 12" in tr.reason and "2 realignments" in tr.reason
+    assert holders[0].plant.holding  # the loop stopped the arm
+    assert tr.task_time_s < 30  # bounded, not a hang
+
+
+@pytest.mark.slow
+def test_a_tilted_hole_is_surveyed_and_inserted(cfg):
+    # The fixture tilted 2 deg about x and -1.5 deg about y, offset 1 mm: the survey of its face gives
+    # the hole's axis (to ~0.1 deg), the insertion then follows it.
+    tr = _trial(cfg, offset=(0.001, -0.001), tilt=(2.0, -1.5))
+    assert tr.outcome == "done", tr.reason
+    assert tr.axis_error_deg is not None and tr.axis_error_deg < 0.2
+    assert tr.success and tr.peak_force_n < 80
+
+
+def test_the_surveyed_face_defines_the_hole_frame(cfg):
+    # Three touch points on a face tilted 2 deg about x through the nominal mouth centre: the fitted frame
+    # makes the face level at the nominal height, and a point on the face reads depth 0 in it.
+    import pinocchio as pin
+
+    from main import robot_for
+    from tasks.peg import PegInHoleTask
+
+    robot = robot_for(cfg, "peg")
+    centre = np.array([*cfg.scene.hole_center, cfg.scene.table_height])
+    task = PegInHoleTask(PegConfig(), robot, centre[:2], centre[2], cfg.loop.period_s,
+                         np.asarray(cfg.robot.home, float))
+    R = pin.exp3(np.array([np.radians(2.0), 0.0, 0.0]))
+    task._survey_points = [centre + R @ np.array([r * np.cos(a), r * np.sin(a), 0.0])
+                           for r, a in ((0.0145, np.pi / 2), (0.0145, -np.pi / 2), (0.0145, np.pi))]
+    assert task._fit_face()
+    assert task.hole_tilt_deg == pytest.approx(2.0, abs=1e-6)
+    assert np.allclose(task.T.rotation[:, 2], R[:, 2], atol=1e-9)
+    on_face = centre + R @ np.array([0.005, 0.012, 0.0])
+    assert (task.Ti.act(on_face))[2] == pytest.approx(centre[2], abs=1e-9)
+
+
+def test_a_face_tilted_beyond_the_limit_fails_by_name(cfg):
+    from main import robot_for
+    from tasks.peg import PegInHoleTask
+
+    robot = robot_for(cfg, "peg")
+    centre = np.array([*cfg.scene.hole_center, cfg.scene.table_height])
+    task = PegInHoleTask(PegConfig(max_hole_tilt_deg=3.0), robot, centre[:2], centre[2], cfg.loop.period_s,
+                         np.asarray(cfg.robot.home, float))
+    s = np.tan(np.radians(6.0))
+    task._survey_points = [centre + np.array([x, y, s * x]) for x, y in ((0.0, 0.0145), (0.0, -0.0145), (-0.0145, 0.0))]
+    assert not task._fit_face()
+    assert task.outcome == "failed" and "fixture face tilted 6.0 deg" in task.reason
