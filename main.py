@@ -109,8 +109,8 @@ PREPARE_SAMPLES = 40_000  # `prepare`'s default collection: about half a minute 
 
 
 def cell_identity(cfg: CellConfig, kind: str, seed: int | None) -> dict[str, Any]:
-    """Which arm a calibration was made on: for a simulated one its plant profile and seed (the seed
-    draws the arm's friction ripple phases, so another seed is another specimen of the arm)."""
+    """Which arm a calibration was made on: for a simulated one its plant profile (which fixes the
+    specimen: friction-ripple phases, sensor offset) and the run seed (noise only)."""
     if kind == "real":
         return {"kind": "real"}
     import hashlib
@@ -118,9 +118,9 @@ def cell_identity(cfg: CellConfig, kind: str, seed: int | None) -> dict[str, Any
     from sim.profile import load_profile
 
     path = resolve(cfg.plant)
-    effective = seed if seed is not None else load_profile(path).seed
+    profile = load_profile(path)
     return {"kind": "sim", "plant": str(path), "plant_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
-            "seed": effective}
+            "specimen_seed": profile.specimen_seed, "seed": seed if seed is not None else profile.seed}
 
 
 def ensure_virtual_artefacts(cfg: CellConfig, tool: str, kind: str, robot: RobotModel,
@@ -150,13 +150,10 @@ def _warn_other_plant(cfg: CellConfig, tool: str, seed: int | None) -> None:
 
     made = read_calibration_doc(cfg.virtual_sensor.path("calibration", tool)).get("cell", {})
     here = cell_identity(cfg, "sim", seed)
-    if made.get("kind") == "sim" and (made.get("plant_sha256"), made.get("seed")) != (here["plant_sha256"],
-                                                                                      here["seed"]):
-        log.warning("the %s tool's virtual sensor was made on plant %s seed %s, this run's is %s seed %s: another "
-                    "specimen of the arm (its friction ripple differs), expect larger force errors; "
-                    "`main.py prepare --tool %s --force%s` rebuilds it for this one", tool,
-                    Path(str(made.get("plant"))).name, made.get("seed"), Path(here["plant"]).name, here["seed"],
-                    tool, f" --seed {seed}" if seed is not None else "")
+    if made.get("kind") == "sim" and made.get("plant_sha256") != here["plant_sha256"]:
+        log.warning("the %s tool's virtual sensor was made on plant profile %s, this run uses %s: another arm "
+                    "(other friction, other ripple), expect larger force errors; `main.py prepare --tool %s --force` "
+                    "rebuilds it for this one", tool, made.get("plant"), here["plant"], tool)
 
 
 def make_force_source(cfg: CellConfig, source: str, tool: str, cell: Any, robot: RobotModel) -> Any:

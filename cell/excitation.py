@@ -486,11 +486,13 @@ def fourier_trajectory(coef_a: np.ndarray, coef_b: np.ndarray, q0: np.ndarray, w
 
 
 def fourier_excitation(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: float,
-                       traj_base: int = 0, segment_base: int = 0, centres: np.ndarray | None = None) -> Plan:
+                       traj_base: int = 0, segment_base: int = 0, centres: np.ndarray | None = None,
+                       speed_fraction: float = 1.0) -> Plan:
     """Identification-grade excitation: per trajectory, random Fourier coefficients scaled into the
     position / speed / acceleration limits; among the collision-free candidates the one whose base
     regressor (column-scaled) has the lowest condition number is kept.  Trajectories are joined by
-    quintic moves (which are segments too)."""
+    quintic moves (which are segments too).  `speed_fraction` < 1 caps the joint speeds at that
+    fraction of the limits (slow, small-amplitude excitation: the friction's low-speed regime)."""
     from cell.dynamics.physics import base_parameters, full_regressor
 
     fc = ex.fourier
@@ -520,7 +522,7 @@ def fourier_excitation(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig,
             dev = np.abs(q - q0).max(axis=0)
             scale = np.min([
                 np.min(room / np.maximum(dev, 1e-9)),
-                np.min(ws.vmax / np.maximum(np.abs(dq).max(axis=0), 1e-9)),
+                np.min(ws.vmax * speed_fraction / np.maximum(np.abs(dq).max(axis=0), 1e-9)),
                 np.min(ws.amax / np.maximum(np.abs(ddq).max(axis=0), 1e-9)),
             ])
             q = q0 + (q - q0) * scale

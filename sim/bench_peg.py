@@ -155,7 +155,8 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
               max_offset_m: float = 0.002, max_tilt_deg: float = 2.0, peg_diameter: float | None = None,
               wrap: CellWrapper | None = None, force_source: str = "sensor") -> dict[str, Any]:
     """`trials` insertions with the hole offset uniformly in +-max_offset_m on x and y and tilted uniformly
-    in +-max_tilt_deg about x and y (independently), each on a fresh plant seeded from `seed`."""
+    in +-max_tilt_deg about x and y (independently), each on a fresh plant: the same arm (the profile's
+    specimen), its own noise seeded from `seed`."""
     rng = np.random.default_rng(seed)
     results: list[Trial] = []
     wall0 = time.perf_counter()

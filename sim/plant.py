@@ -61,13 +61,14 @@ class Plant:
         self.data = mujoco.MjData(self.model)
         self.n_joints = nj = 6
         self._arm = slice(0, nj)  # the arm's dofs come first; a tool may add its own (the pad slide)
-        self.rng = np.random.default_rng(profile.seed)
+        self.rng = np.random.default_rng(profile.seed)  # this run's noise
+        specimen = np.random.default_rng(profile.seed if profile.specimen_seed is None else profile.specimen_seed)
         sp = profile.sensor
         self.sensor_offset = np.concatenate([
-            self.rng.uniform(-sp.offset_force_n, sp.offset_force_n, 3),
-            self.rng.uniform(-sp.offset_torque_nm, sp.offset_torque_nm, 3),
+            specimen.uniform(-sp.offset_force_n, sp.offset_force_n, 3),
+            specimen.uniform(-sp.offset_torque_nm, sp.offset_torque_nm, 3),
         ])
-        self.ripple_phase = self.rng.uniform(0, 2 * np.pi, 6)
+        self.ripple_phase = specimen.uniform(0, 2 * np.pi, 6)
         fr = profile.friction
         self._fc = np.array(fr.coulomb)
         self._fs = np.array(fr.stribeck)

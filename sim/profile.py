@@ -133,7 +133,13 @@ class ToolProfile:
 
 @dataclass
 class PlantProfile:
-    """Everything that makes the simulated arm 'real': seeded, and documented next to the YAML."""
+    """Everything that makes the simulated arm 'real': seeded, and documented next to the YAML.
+
+    `specimen_seed` draws what makes this arm this arm (friction-ripple phases, the F/T sensor's
+    unloaded offset); `seed` draws what differs from run to run (torque and sensor noise).  A run's
+    `--seed` replaces `seed` only, so every run of one profile is the same arm, as on a real cell;
+    another specimen is another profile (or `specimen_seed`).  Default: the profile's own `seed`.
+    """
 
     seed: int
     friction: FrictionProfile
@@ -146,6 +152,7 @@ class PlantProfile:
     sensor: FTSensorProfile = field(default_factory=FTSensorProfile)
     tool: ToolProfile = field(default_factory=ToolProfile)
     description: str = ""
+    specimen_seed: int | None = None
 
     def validate(self, where: str) -> None:
         require_len(self.rotor_inertia, 6, join(where, "rotor_inertia"))
@@ -158,4 +165,7 @@ class PlantProfile:
 
 
 def load_profile(path: Path) -> PlantProfile:
-    return load_dataclass(PlantProfile, read_yaml(path), f"{path}:")
+    profile = load_dataclass(PlantProfile, read_yaml(path), f"{path}:")
+    if profile.specimen_seed is None:
+        profile.specimen_seed = profile.seed  # fixed now: a run seed set later does not change the arm
+    return profile

@@ -11,7 +11,10 @@ training postures, and every route (observer x mapping) is scored on the held-ou
 the sensor.  The artefact keeps the noise, the learned maps of both observers and the report.
 
 `prepare` = collect a modest dataset with the tool mounted, train the causal H1, calibrate; each
-step is skipped when its artefact is present and matches (unless `force`).
+step is skipped when its artefact is present and matches (unless `force`).  On top of the `samples`
+of the mixed family the dataset gets `PREPARE_SLOW_SHARE` x `samples` of slow, small-amplitude
+excitation: careful task motion (the peg's slides and rotations, 0.005-0.05 rad/s) runs in the
+friction's low-speed regime, which the fast families only cross at their turning points.
 """
 
 from __future__ import annotations
@@ -377,6 +380,9 @@ def calibration_matches(cfg: CellConfig, robot: RobotModel, tool: str, model_dir
     return ""
 
 
+PREPARE_SLOW_SHARE = 0.25
+
+
 def prepare(
     cfg: CellConfig,
     tool: str,
@@ -402,7 +408,8 @@ def prepare(
     steps: dict[str, Any] = {}
     if force or not manifest.exists():
         log.info("prepare %s: collecting %d samples with the %s tool into %s", tool, samples, tool, data_dir)
-        res = lab.collect(cfg, collect_opener, data_dir, samples=samples, test_trajectories=0, seed=seed)
+        res = lab.collect(cfg, collect_opener, data_dir, samples=samples, test_trajectories=0, seed=seed,
+                          slow_share=PREPARE_SLOW_SHARE)
         steps["collect"] = {"done": True, "train_samples": res["train_samples"], "wall_s": round(res["wall_s"], 1)}
     else:
         steps["collect"] = {"done": False, "reason": f"{manifest} exists"}

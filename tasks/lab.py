@@ -80,6 +80,7 @@ def collect(
     test_moves: int = 4,
     excitation: str | None = None,
     seed: int = 0,
+    slow_share: float = 0.0,
 ) -> dict[str, Any]:
     """Run training and test trajectories on a cell through the control loop (safety, recording) and
     write a dataset: `<out>/train.parquet`, `<out>/test.parquet`, `<out>/dataset.yaml`, `<out>/collect.json`.
@@ -102,7 +103,7 @@ def collect(
     ex = dataclasses.replace(ex, seed=ex.seed + seed)
     dt = cfg.loop.period_s
     t0 = time.perf_counter()
-    train_plan = training_plan(robot, cfg, ex, dt, samples, family, fourier_share)
+    train_plan = training_plan(robot, cfg, ex, dt, samples, family, fourier_share, slow_share)
     plans: list[tuple[str, Plan]] = [("train", train_plan)]
     if test_trajectories > 0:
         test_plan = random_moves(robot, cfg, ex, dt, test_trajectories, test_moves, list(ex.speeds),
@@ -150,10 +151,31 @@ def collect(
     return summary
 
 
+SLOW_SPEED_FRACTION = 0.02  # slow excitation: joint speeds up to 2 % of the limits (~0.05 rad/s)
+
+
 def training_plan(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: float, samples: int,
-                  family: str, fourier_share: float = 0.7) -> Plan:
+                  family: str, fourier_share: float = 0.7, slow_share: float = 0.0) -> Plan:
+    """The training motion.  `slow_share` > 0 (what `prepare` collects) adds about `slow_share * samples`
+    samples of slow, small-amplitude Fourier excitation around random centres to the family's
+    `samples`: the joint speeds of careful task motion (0.005-0.05 rad/s), where the friction is in
+    its Stribeck regime and the fast families only pass through at their turning points."""
     if not 0 < fourier_share < 1:
         raise ConfigError(f"--fourier-share {fourier_share}: must lie in (0, 1)")
+    if not 0 <= slow_share < 1:
+        raise ConfigError(f"slow_share {slow_share}: must lie in [0, 1)")
+    if slow_share > 0:
+        slow_n = int(samples * slow_share)
+        fast = training_plan(robot, cfg, ex, dt, samples, family, fourier_share)
+        # Few candidates: the slow part is for the friction, not for the rigid-body identification.
+        fc = dataclasses.replace(ex.fourier, ramp_s=1.0, candidates=3)
+        per_traj = (fc.periods / fc.base_hz + 2 * fc.ramp_s) / dt
+        k = max(1, int(np.ceil(slow_n / per_traj)))
+        slow = fourier_excitation(robot, cfg, dataclasses.replace(
+            ex, seed=ex.seed + 500, fourier=dataclasses.replace(fc, trajectories=k)), dt, traj_base=300,
+            segment_base=max(s.segment for s in fast.segments) + 1, speed_fraction=SLOW_SPEED_FRACTION)
+        joined = join_plans([fast, slow], robot, cfg, ex)
+        return Plan(joined.segments, dt, {**joined.info, "slow": slow.info, "slow_share": slow_share})
     if family == "paper":
         return paper_chain(robot, cfg, ex, dt, max_samples=samples)
     if family in ("fourier", "mixed"):
