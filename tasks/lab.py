@@ -253,6 +253,7 @@ PAPER_FEATURES = FeatureSpec(window=10, grouping="paper")
 # and needs deeper trees.
 RESIDUAL_XGB = XGBParams(max_depth=3, min_child_weight=50, n_estimators=300, learning_rate=0.15,
                          early_stopping_rounds=40)
+LARGE_D_SAMPLES = 100_000  # D fitted on at least this many samples keeps every sample for training (fit_model)
 DEFAULT_XGB: dict[str, XGBParams] = {"D": XGBParams(), "H1": RESIDUAL_XGB, "H2": RESIDUAL_XGB, "H3": XGBParams()}
 
 
@@ -319,8 +320,13 @@ def fit_model(kind: str, robot: RobotModel, s: Samples, opts: TrainOptions, data
     if kind == "P2":
         assert p2 is not None
         return p2
-    return fit_learned(kind, robot, s, spec or opts.spec(kind), opts.params(kind), p2=p2,
-                       training_data_sha256=data_sha)
+    params = opts.params(kind)
+    if kind == "D" and len(s) >= LARGE_D_SAMPLES:
+        # With hundreds of thousands of samples the tree budget, not over-fitting, bounds D, and an
+        # early-stopping holdout only withholds a fifth of the data (default plant, 500k: J1-3 RMSE
+        # 1.82 N m with the holdout, 1.64 without).
+        params = dataclasses.replace(params, validation_fraction=0.0)
+    return fit_learned(kind, robot, s, spec or opts.spec(kind), params, p2=p2, training_data_sha256=data_sha)
 
 
 def train(
