@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from cell.config import CONFIG_DIR, CellConfig, load_config, resolve
+from cell.configio import json_default
 from cell.robot import RobotModel, load_robot
 from drivers.errors import CellError, ConfigError
 
@@ -466,7 +467,7 @@ def cmd_emulate(args: argparse.Namespace) -> int:
 
 def _emit(out: dict[str, Any], as_json: bool) -> None:
     if as_json:
-        print(json.dumps(out, default=_jsonable))
+        print(json.dumps(out, default=json_default))
         return
     for key, value in out.items():
         if isinstance(value, dict):
@@ -479,14 +480,6 @@ def _emit(out: dict[str, Any], as_json: bool) -> None:
 
 def _fmt(v: Any) -> str:
     return f"{v:.4g}" if isinstance(v, float) else str(v)
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    return str(obj)
 
 
 # --------------------------------------------------------------------------------------- parser

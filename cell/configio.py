@@ -9,6 +9,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
 import yaml
 
 from drivers.errors import ConfigError
@@ -150,3 +151,12 @@ def require(cond: bool, where: str, message: str) -> None:
 
 def require_len(values: list[Any], n: int, where: str) -> None:
     require(len(values) == n, where, f"must have {n} values (one per joint), got {len(values)}")
+
+
+def json_default(obj: Any) -> Any:
+    """`json.dumps(default=...)` for numpy scalars and arrays (anything else as its string)."""
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return str(obj)

@@ -22,7 +22,7 @@ import yaml
 from tqdm import tqdm
 
 from cell.config import CellConfig, resolve
-from cell.configio import read_yaml, to_plain
+from cell.configio import json_default, read_yaml, to_plain
 from cell.dataset import (
     DerivativeMode,
     Samples,
@@ -507,7 +507,7 @@ def evaluate(
         "identified_p2": p2_small.params.report if p2_small is not None else None,
         "wall_s": round(time.perf_counter() - t_start, 1),
     }
-    (out_dir / "evaluation.json").write_text(json.dumps(summary, indent=2, default=_jsonable))
+    (out_dir / "evaluation.json").write_text(json.dumps(summary, indent=2, default=json_default))
     (out_dir / "table.md").write_text(_table(summary))
     try:
         summary["plot"] = str(_plot(summary, out_dir / "evaluation.png"))
@@ -659,14 +659,6 @@ def bench_virtual_sensor(cfg: CellConfig, robot: RobotModel, model: LearnedModel
     chosen = f"{vs.observer}+{vs.mapping}"
     return {"virtual_sensor_route": chosen, "virtual_sensor_step_p50_us": out[chosen]["p50_us"],
             "virtual_sensor_step_p99_us": out[chosen]["p99_us"], "virtual_sensor_routes": out}
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    return str(obj)
 
 
 def _table(summary: dict[str, Any]) -> str:

@@ -584,7 +584,10 @@ class PegInHoleTask(MachineTask):
     def _follow_segments(self) -> bool:
         """Advance the reference along self._segments (smoothstep); True when at the end."""
         self._seg_t += self.dt
-        t = self._seg_t
+        return self._ref_on_segments(self._seg_t)
+
+    def _ref_on_segments(self, t: float) -> bool:
+        """Set the reference to time t along self._segments (smoothstep); True when past the end."""
         for start, end, duration in self._segments:
             if t < duration:
                 s = t / duration
@@ -664,14 +667,8 @@ class PegInHoleTask(MachineTask):
 
     def _back_off(self, obs: Observation, fz: float, mx: float, my: float) -> bool:
         self._setpoint = 0.0
-        t = self.t_state
-        for start, end, duration in self._segments:
-            if t < duration:
-                s = t / duration
-                self.ref = pin.SE3.Interpolate(start, end, s * s * (3 - 2 * s))
-                return False
-            t -= duration
-        self.ref = self._segments[-1][1].copy()
+        if not self._ref_on_segments(self.t_state):
+            return False
         self._approach_from = float(self.ref.translation[2])
         self.backed_off()
         return False
