@@ -160,10 +160,13 @@ class EmulatorFaults:
         return self.exception_code if now < self.exceptions_until else None
 
 
-# The robot-side program plays the host's targets this many cycles behind the newest (a jitter
-# buffer), and bridges a late host for at most MAX_EXTRAPOLATION cycles.
+# The robot-side program plays the host's targets about this many cycles behind the newest (a jitter
+# buffer).  Its playback clock is elastic: it slows down (by at most RATE_STEP of the host's rate per
+# cycle) when the buffer runs low, so a late host makes the arm ease off instead of overshooting and
+# jumping back, and it catches up at up to MAX_RATE when the buffer is deeper than planned.
 JITTER_DELAY_CYCLES = 2
-MAX_EXTRAPOLATION = 3
+RATE_STEP = 0.25
+MAX_RATE = 1.25
 
 
 @dataclass
@@ -176,10 +179,11 @@ class RobotProgramState:
     executing: bool = False
     held: bool = False  # latched protective hold (host STOP, bad targets, pause)
     watchdog: bool = False  # latched: host heartbeat stalled while tracking
-    # Jitter buffer: targets received this tracking session, by host sequence number, and the
-    # sequence number the servo plays this cycle (one behind the newest expected).
+    # Jitter buffer: targets received this tracking session, by host sequence number; the (fractional)
+    # sequence position the servo plays, and how many sequence numbers it advances per cycle.
     received: dict[int, np.ndarray] = field(default_factory=dict)
-    play_seq: int | None = None
+    play_seq: float | None = None
+    rate: float = 1.0
 
     @property
     def flags(self) -> RobotFlags:
@@ -498,7 +502,8 @@ class TM5Emulator:
                     return
                 if not prog.executing:
                     prog.received.clear()
-                    prog.play_seq = seq - JITTER_DELAY_CYCLES
+                    prog.play_seq = float(seq - JITTER_DELAY_CYCLES)
+                    prog.rate = 1.0
                 prog.received[seq] = targets
                 prog.executing = True
             elif prog.executing and prog.stalled_cycles >= self.watchdog_cycles:
@@ -514,32 +519,36 @@ class TM5Emulator:
             self._hold(f"unknown host command {command}")
 
     def _play_next(self) -> None:
-        """Hand the servo one target per cycle, by host sequence number, one cycle behind the newest
-        expected: a host that is a cycle late costs nothing, a skipped sequence is interpolated, and a
-        host that falls further behind is extrapolated for at most MAX_EXTRAPOLATION cycles."""
+        """Hand the servo one target per cycle from the jitter buffer, on an elastic clock: the
+        playback rate (host sequence numbers per cycle) moves by at most RATE_STEP per cycle, never
+        faster than it can still brake to a stop at the newest stored target (half a cycle of
+        tolerance), and up to MAX_RATE while the buffer is deeper than planned.  A skipped sequence is
+        interpolated; a host that stops sending makes the arm ease to a stop at its last target (the
+        watchdog latches a hold if it stays silent)."""
         prog = self.program
         assert prog.play_seq is not None
-        prog.play_seq += 1
-        i = prog.play_seq
+        if not prog.received:
+            return
+        newest = max(prog.received)
+        ahead = newest - prog.play_seq
+        # Brake-able rate r: r + (r - s) + (r - 2s) + ... ~ r^2 / (2 s) + r / 2 <= ahead + 0.5.
+        s, d = RATE_STEP, max(ahead + 0.5, 0.0)
+        brake = math.sqrt(2.0 * s * d + s * s / 4.0) - s / 2.0
+        want = MAX_RATE if ahead > JITTER_DELAY_CYCLES + 0.5 else 1.0
+        rate = max(min(want, prog.rate + s), prog.rate - s)  # ease towards the wanted rate
+        prog.rate = max(0.0, min(rate, brake))  # but never past what still stops at the newest target
+        prog.play_seq = min(prog.play_seq + prog.rate, float(newest))
+        pos = prog.play_seq
         known = sorted(prog.received)
-        target = prog.received.get(i)
-        if target is None:
-            below = [k for k in known if k < i]
-            above = [k for k in known if k > i]
-            if below and above:  # the host wrote twice between two of our reads
-                a, b = below[-1], above[0]
-                target = prog.received[a] + (prog.received[b] - prog.received[a]) * (i - a) / (b - a)
-            elif len(below) >= 2 and i - below[-1] <= MAX_EXTRAPOLATION:  # the host is late
-                a, b = below[-2], below[-1]
-                target = prog.received[b] + (prog.received[b] - prog.received[a]) * (i - b) / (b - a)
-            elif below:
-                # Too late for too long: stand still where we are, and resume from the host's next
-                # target when it comes (the watchdog stops the arm if it never does).
-                prog.play_seq = below[-1]
-                return
-            else:
-                return  # nothing to play yet
-        for k in [k for k in known if k < i - 4]:
+        below = [k for k in known if k <= pos]
+        above = [k for k in known if k >= pos]
+        if not below:
+            return  # nothing to play yet (the buffer starts ahead of the arm)
+        a = below[-1]
+        b = above[0] if above else a
+        target = prog.received[a] if b == a else (
+            prog.received[a] + (prog.received[b] - prog.received[a]) * (pos - a) / (b - a))
+        for k in [k for k in known if k < a - 4]:
             del prog.received[k]
         self.plant.set_target(target)
 
