@@ -103,7 +103,13 @@ class PegConfig:
     slide_fast_m: float = 0.0065  # the wall is at least (hole radius - max lateral error) away
     slide_slow_speed_mps: float = 0.0025  # then slowly: contacts are stiff
     slide_block_m: float = 0.0006  # the tip lagging the slide reference by this much: blocked by the wall
-    block_moment_nm: float = 0.6  # or the wall's push showing in (Mx, My)
+    block_moment_nm: float = 1.0  # or the wall's push showing in (Mx, My) (above the virtual sensor's +-0.5 N·m
+    # errors while sliding; the stall test below finds the wall first in most cases)
+    # or the tip stalling: its speed along the move under this share of the commanded speed for
+    # `stall_cycles` cycles (after `stall_after_s`, the servo's lag) -- independent of the wrench's errors
+    stall_fraction: float = 0.3
+    stall_cycles: int = 3
+    stall_after_s: float = 0.2
     max_slide_m: float = 0.016  # slid this far without meeting the wall: fail
     chord_backoff_m: float = 0.001  # back from the wall before measuring the chord across the lead
     chord_speed_mps: float = 0.0035  # while the wall may be near
@@ -128,7 +134,9 @@ class PegConfig:
     realign_force_n: float = 4.0
     realign_lift_m: float = 0.0005
     max_realigns: int = 6
-    rotation_gain: float = 0.05  # rad/s of compliant tilt per N·m of tool moment (about the tip)
+    # rad/s of compliant tilt per N·m of tool moment (about the tip).  0 by default: the surveyed hole axis
+    # is within 0.1 deg, and tilting on the virtual sensor's moment errors jammed the peg at the mouth.
+    rotation_gain: float = 0.0
     shift_gain: float = 0.004  # m/s of compliant tip shift per N·m of tool moment
     comply_deadband_nm: float = 0.3  # |(Mx, My)| below this: no compliant motion (the source's error band)
     max_tilt_deg: float = 15.0  # the peg tilted further than this from vertical: fail
@@ -139,7 +147,7 @@ class PegConfig:
     max_pull_n: float = 40.0  # pull-out force (negative Fz) beyond this while retracting ...
     max_pull_s: float = 0.3  # ... for longer than this: fail
     max_force_n: float = 70.0  # task-level force limit (the cell's safety limit is separate)
-    max_moment_nm: float = 4.0
+    max_moment_nm: float = 5.0
     move_speed_fraction: float = 0.15  # of the joint speed limits, for the move to the start pose
     tare_time_s: float = 0.3
     max_duration_s: float = 40.0
@@ -324,6 +332,8 @@ class PegInHoleTask(MachineTask):
         self._touching = 0
         self._phase = 0
         self._phase_time = 0.0
+        self._tip_track: list[float] = []  # tip position along the current search move, per cycle
+        self._stalled = 0
         self._phase_from = np.zeros(3)
         self._chord_a = np.zeros(3)
         self._chord_mid = 0.0
@@ -702,6 +712,13 @@ class PegInHoleTask(MachineTask):
         self._slid += step
         moved = float((self._tip.translation - self._phase_from) @ d)
         lag = self._slid - moved
+        self._tip_track.append(float(self._tip.translation @ d))
+        k = self.cfg.stall_cycles
+        if (dist is None and self._phase_t() > c.stall_after_s and len(self._tip_track) > k
+                and (self._tip_track[-1] - self._tip_track[-1 - k]) < c.stall_fraction * v * k * self.dt):
+            self._stalled += 1
+        else:
+            self._stalled = 0
         m = math.hypot(mx, my)
         # The previous phase's wall contact rings on for a while (the tip springs back, the moment decays):
         # a lag blocks this phase only once the tip has really moved its way, a moment only after it has
@@ -713,6 +730,7 @@ class PegInHoleTask(MachineTask):
             done = self._slid >= dist - 1e-9 and self._phase_t() > 0.1
         elif self._slid > max(fast, c.min_probe_travel_m) and (
                 (moved > c.min_probe_travel_m and lag > c.slide_block_m)
+                or (moved > c.min_probe_travel_m and self._stalled >= 1)
                 or (self._phase_clear and np.isfinite(m) and m > c.block_moment_nm)):
             done = True
         elif self._slid > c.max_slide_m:
@@ -747,6 +765,8 @@ class PegInHoleTask(MachineTask):
         self._phase_from = self._tip.translation.copy()
         self._slid = 0.0
         self._phase_time = 0.0
+        self._tip_track.clear()
+        self._stalled = 0
         return False
 
     def _phase_t(self) -> float:
@@ -878,6 +898,8 @@ class PegInHoleTask(MachineTask):
         self._phase = 0
         self._phase_clear = False
         self._phase_time = 0.0
+        self._tip_track.clear()
+        self._stalled = 0
         self._phase_from = self._tip.translation.copy()
         self._slide_from = self._tip.translation.copy()
         self.ref.translation[:] = self._tip.translation
