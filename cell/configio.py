@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import types
 import typing
@@ -12,7 +13,7 @@ from typing import Any, TypeVar
 import numpy as np
 import yaml
 
-from drivers.errors import ConfigError
+from drivers.errors import ConfigError, DataError
 
 T = TypeVar("T")
 
@@ -160,3 +161,20 @@ def json_default(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     return str(obj)
+
+
+def read_versioned_json(doc_path: Path, fmt: str, version: int, what: str, missing: str) -> dict[str, Any]:
+    """A saved artefact's JSON document: present, readable, of format `fmt` and not newer than `version`
+    (one-line DataErrors naming the file otherwise; `missing` is the message when it does not exist)."""
+    if not doc_path.exists():
+        raise DataError(missing)
+    try:
+        doc = json.loads(doc_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DataError(f"{doc_path}: unreadable {what} ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != fmt:
+        found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+        raise DataError(f"{doc_path}: format is {found!r}, expected {fmt!r}")
+    if int(doc.get("format_version", 0)) > version:
+        raise DataError(f"{doc_path}: format_version {doc['format_version']} is newer than this build reads")
+    return doc

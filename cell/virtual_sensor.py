@@ -21,6 +21,7 @@ import numpy as np
 import xgboost as xgb
 
 from cell.config import VirtualSensorConfig
+from cell.configio import read_versioned_json
 from cell.dynamics.artefact import load_model
 from cell.dynamics.learned import LearnedModel
 from cell.dynamics.physics import urdf_sha256
@@ -101,18 +102,8 @@ def _plain(obj: Any) -> Any:
 
 
 def read_calibration_doc(path: Path) -> dict[str, Any]:
-    doc_path = Path(path) / "calibration.json"
-    if not doc_path.exists():
-        raise DataError(f"{path}: no calibration.json (not a virtual-sensor calibration; run main.py calibrate)")
-    try:
-        doc = json.loads(doc_path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DataError(f"{doc_path}: unreadable calibration ({exc})") from None
-    if doc.get("format") != FORMAT:
-        raise DataError(f"{doc_path}: format is {doc.get('format')!r}, expected {FORMAT!r}")
-    if int(doc.get("format_version", 0)) > FORMAT_VERSION:
-        raise DataError(f"{doc_path}: format_version {doc['format_version']} is newer than this build reads")
-    return doc
+    return read_versioned_json(Path(path) / "calibration.json", FORMAT, FORMAT_VERSION, "calibration",
+                               f"{path}: no calibration.json (not a virtual-sensor calibration; run main.py calibrate)")
 
 
 def check_calibration(doc: dict[str, Any], where: str, robot: RobotModel, tool: str, model_path: Path,

@@ -11,7 +11,7 @@ from typing import Any
 
 import xgboost as xgb
 
-from cell.configio import load_dataclass
+from cell.configio import load_dataclass, read_versioned_json
 from cell.dynamics.base import ModelMeta
 from cell.dynamics.features import FeatureSpec
 from cell.dynamics.learned import PHYSICS_PART, Forest, LearnedModel, XGBParams
@@ -80,16 +80,8 @@ def check_robot(meta: ModelMeta, robot: RobotModel, where: str) -> None:
 def load_model(path: Path, robot: RobotModel) -> AnyModel:
     path = Path(path)
     doc_path = path / "model.json" if path.is_dir() else path
-    if not doc_path.exists():
-        raise DataError(f"{path}: no model.json (not a saved model)")
-    try:
-        doc = json.loads(doc_path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DataError(f"{doc_path}: unreadable model file ({exc})") from None
-    if doc.get("format") != FORMAT:
-        raise DataError(f"{doc_path}: column 'format' is {doc.get('format')!r}, expected {FORMAT!r}")
-    if int(doc.get("format_version", 0)) > FORMAT_VERSION:
-        raise DataError(f"{doc_path}: format_version {doc['format_version']} is newer than this build reads")
+    doc = read_versioned_json(doc_path, FORMAT, FORMAT_VERSION, "model file",
+                              f"{path}: no model.json (not a saved model)")
     meta = _meta(doc["meta"])
     check_robot(meta, robot, str(doc_path))
     if meta.kind == "P1":
