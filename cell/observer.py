@@ -84,15 +84,26 @@ class ContactPredictor(FastPredictor):
         if self.part not in ("full", "rigid") or self.p2 is None:
             raise ValueError(f"the observers need a hybrid model with the rigid body (H1, H2), got {model.kind}")
 
-    def predict_contact(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, external: np.ndarray) -> np.ndarray:
+    def parts_contact(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray,
+                      external: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rigid-body torque, learned torque) for one sample; the hybrid's torque is their sum plus
+        the losses when the model's physics part is `full`."""
         assert self.p2 is not None
         x = self._x
         x[:self._nw] = self.window.push(q, dq, ddq)
         rigid = self.p2.rigid_one(q, dq, ddq)
-        tau = rigid + self.p2.losses(q, dq, ddq) if self.part == "full" else rigid.copy()
         if self._has_extra:
             x[self._nw:] = self._derived(q, dq, rigid + external)
-        tau[self.outputs] += self.forest.predict(x)
+        learned = np.zeros_like(rigid)
+        learned[self.outputs] = self.forest.predict(x)
+        return rigid, learned
+
+    def predict_contact(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, external: np.ndarray) -> np.ndarray:
+        assert self.p2 is not None
+        rigid, learned = self.parts_contact(q, dq, ddq, external)
+        tau = rigid + learned
+        if self.part == "full":
+            tau += self.p2.losses(q, dq, ddq)
         return tau
 
     def step_contact(self, q: np.ndarray, dq: np.ndarray | None, external: np.ndarray) -> np.ndarray:
@@ -214,14 +225,15 @@ class MomentumObserver:
         v, a = self.fast.derivs.step(q, state.dq)
         par = self.p2.params
         # The learned residual: the hybrid's torque minus its physics part (both on the same sample).
-        tau_h1 = self.fast.predict_contact(q, v, a, self._estimate)
-        residual = tau_h1 - self.p2.rigid_one(q, v, a) - self.p2.losses(q, v, a)
+        _, residual = self.fast.parts_contact(q, v, a, self._estimate)
+        losses = par.C_m * v + par.f_c * smooth_sign(v, par.sign_eps)
+        if self.fast.part != "full":  # the learned part covers the losses too
+            residual = residual - losses - par.B_m * a
         pm, pd = self.pm, self.pd
         M = pin.crba(pm, pd, q)
         M = np.triu(M) + np.triu(M, 1).T + self.B
         C = pin.computeCoriolisMatrix(pm, pd, q, v)
         g = pin.computeGeneralizedGravity(pm, pd, q)
-        losses = par.C_m * v + par.f_c * smooth_sign(v, par.sign_eps)
         p = M @ v
         if self.p0 is None:
             self.p0 = p

@@ -172,7 +172,6 @@ class VirtualForceSource:
         self.label = label or f"{observer.kind}+{mapping.kind}"
         self.ill_conditioned_cycles = 0
         self.cycles = 0
-        self._ill = False
         self.last: Wrench | None = None
         self.last_tau_ext = np.zeros(6)
         self.ill_conditioned = False
@@ -181,13 +180,12 @@ class VirtualForceSource:
         tau_ext = self.observer.update(state)
         m = self.mapping.map(state.q, tau_ext)
         self.cycles += 1
-        self.ill_conditioned = m.ill_conditioned
         if m.ill_conditioned:
             self.ill_conditioned_cycles += 1
-            if not self._ill:
+            if not self.ill_conditioned:  # warn once per singular stretch
                 log.warning("virtual sensor: the arm is near a singularity (smallest Jacobian singular value "
                             "%.4f); the wrench is damped and less reliable", m.sigma_min)
-        self._ill = m.ill_conditioned
+        self.ill_conditioned = m.ill_conditioned
         self.last_tau_ext = tau_ext
         w = Wrench(t=state.t, force=m.wrench[:3].copy(), torque=m.wrench[3:].copy())
         self.last = w

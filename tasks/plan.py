@@ -145,8 +145,8 @@ def plan_and_validate(
             # Tightening for the model's error has made the path infeasible: keep what ran.
             log.warning("%s/%s: re-plan %d impossible (%s); keeping the best run", name, planner_name, r, exc)
             break
-        no_gain = last is not None and traj.duration > last.traj.duration - 0.5 * pcfg.sample_period_s
-        if last is not None and last.outcome == "done" and no_gain:
+        if (last is not None and last.outcome == "done"
+                and traj.duration > last.traj.duration - 0.5 * pcfg.sample_period_s):
             break  # the last run was within the limits and the correction buys no time: done
         summary = execute(traj, cfg, robot, open_cell)
         peak = measured_peak(summary.get("run_dir"), robot.n)
@@ -180,11 +180,10 @@ def plan_and_validate(
             over = over if over.any() else ratio >= np.nanmax(ratio)  # stopped for another reason: the worst joint
             bad = np.where(over, np.minimum(bad, scale), bad)
             scale = np.where(over, np.where(good > 0, 0.5 * (good + scale), np.minimum(wanted, scale)), scale)
-    if best is not None:
-        best.rounds, best.stops = last.rounds if last else best.rounds, stops
-        return best
-    assert last is not None
-    return last
+    assert last is not None  # the first round either ran or raised
+    result = best or last  # the fastest run within the limits, else the last attempt
+    result.rounds, result.stops = last.rounds, stops
+    return result
 
 
 def run_plans(

@@ -57,20 +57,25 @@ def _drive(holder, targets, sources, hand=None, wrench=None):
     return {k: np.asarray(v) for k, v in est.items()}, np.asarray(truth)
 
 
-def test_kalman_is_one_independent_state_per_joint():
-    """The n-dimensional filterpy filter with diagonal matrices is exactly n scalar filters."""
+def test_kalman_is_one_independent_state_per_joint(vs):
+    """The observer's n-dimensional filterpy filter is exactly n scalar filters with its R and Q."""
+    obs = _source(vs, "kalman").observer
+    assert isinstance(obs, KalmanObserver)
+    big, n = obs.kf, obs.n
+    for m in (big.F, big.H, big.Q, big.R):
+        assert np.allclose(m, np.diag(np.diag(m)))
+    np.testing.assert_allclose(np.diag(big.R), obs.R)
+    np.testing.assert_allclose(np.diag(big.Q), obs.Q)
     rng = np.random.default_rng(0)
-    R = np.array([1.0, 2.0, 0.5, 0.04, 0.05, 0.03])
-    Q = np.array([0.02, 0.01, 0.03, 0.001, 0.002, 0.001])
-    big = KalmanFilter(dim_x=6, dim_z=6)
-    big.F, big.H, big.Q, big.R, big.P = np.eye(6), np.eye(6), np.diag(Q), np.diag(R), np.diag(R)
     small = []
-    for j in range(6):
+    for j in range(n):
         f = KalmanFilter(dim_x=1, dim_z=1)
-        f.F, f.H, f.Q, f.R, f.P = np.eye(1), np.eye(1), np.eye(1) * Q[j], np.eye(1) * R[j], np.eye(1) * R[j]
+        f.F, f.H, f.Q, f.R = np.eye(1), np.eye(1), np.eye(1) * obs.Q[j], np.eye(1) * obs.R[j]
+        f.P = big.P[j:j + 1, j:j + 1].copy()
+        f.x = big.x[j:j + 1].copy()
         small.append(f)
     for _ in range(200):
-        z = rng.normal(size=6) * np.sqrt(R) + 3.0
+        z = rng.normal(size=n) * np.sqrt(obs.R) + 3.0
         big.predict()
         big.update(z.reshape(-1, 1))
         for j, f in enumerate(small):
