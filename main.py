@@ -302,7 +302,17 @@ def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
 
     if args.trials < 1 or args.max_offset_mm < 0 or args.max_tilt_deg < 0:
         raise ConfigError("bench peg-in-hole: --trials must be >= 1, --max-offset-mm and --max-tilt-deg >= 0")
+    if args.only is not None and not all(0 <= k < args.trials for k in args.only):
+        raise ConfigError(f"bench peg-in-hole: --only {args.only}: trial numbers must lie in 0..{args.trials - 1}")
+    record = None
+    if args.record:
+        from cell.recorder import new_run_dir
+
+        record = new_run_dir(Path(cfg.recording.directory), "bench-peg")
+        (record / "log").rmdir()  # the trials' logs are in trial_NNN/log
+        log.info("recording every trial under %s", record)
     return bench_peg(cfg, robot, pcfg, args.trials, args.seed if args.seed is not None else 0,
+                     only=args.only, record=record,
                      max_offset_m=args.max_offset_mm * 1e-3, max_tilt_deg=args.max_tilt_deg,
                      peg_diameter=args.peg_diameter_mm * 1e-3 if args.peg_diameter_mm else None,
                      wrap=wrap, force_source=args.force_source)
@@ -601,6 +611,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="peg diameter (bench peg-in-hole; default: the plant profile's, 21.4)")
     b.add_argument("--force-source", choices=("virtual", "sensor"), default="virtual",
                    help="bench peg-in-hole: what the task regulates with")
+    b.add_argument("--only", type=int, nargs="+", default=None, metavar="K",
+                   help="bench peg-in-hole: run only these trial numbers (the same draws as in the full bench)")
+    b.add_argument("--record", action="store_true",
+                   help="bench peg-in-hole: log every trial run (runs/<date>-bench-peg/trial_NNN, as `run` logs)")
     b.add_argument("--n", type=int, default=500, help="samples (bench drivers)")
     b.add_argument("--data", default=None, help="dataset manifest (bench model)")
     b.add_argument("--model", default=None, help="model artefact (bench model; default: train an H1)")

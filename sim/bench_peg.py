@@ -7,6 +7,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import mujoco
@@ -14,6 +15,7 @@ import numpy as np
 
 from cell.config import CellConfig, resolve
 from cell.loop import ControlLoop, Observation, OpenCell
+from cell.recorder import Recorder
 from cell.robot import RobotModel
 from cell.safety import SafetyMonitor
 from drivers.interfaces import ArmState, Wrench
@@ -41,10 +43,12 @@ class Trial:
     task_time_s: float
     true_depth_m: float
     peak_force_n: float
+    peak_state: str  # the task state in which the peak force was measured
     probes: int
     realignments: int
     abs_err: np.ndarray  # (n, 3) |virtual - measured| of (Mx, My, Fz) during the insertion
     axis_error_deg: float | None = None  # surveyed hole axis vs the fixture's true one
+    index: int = 0  # the trial's number in the bench's sequence of draws
 
 
 class _Tap:
@@ -54,9 +58,18 @@ class _Tap:
         self.source = source
         self.name = source.name
         self.last: Wrench | None = None
+        self.scoring = False  # peak force kept only once the task is past its move to the start and tare
+        self.state = ""  # the task's state, for the peak's
+        self.peak_force = 0.0
+        self.peak_state = ""
 
     def read(self, state: ArmState) -> Wrench:
+        # The peak is taken here, not in the task's step: a reading that trips the safety stop never
+        # reaches the task, and it is the one that matters.
         self.last = self.source.read(state)
+        f = float(np.linalg.norm(self.last.force))
+        if self.scoring and np.isfinite(f) and f > self.peak_force:
+            self.peak_force, self.peak_state = f, self.state
         return self.last
 
     def rebias(self) -> None:
@@ -66,13 +79,13 @@ class _Tap:
 class _ScoredTask:
     """Wraps the task: per step, the wrench it used, the measured one, and the plant's true depth."""
 
-    def __init__(self, task: PegInHoleTask, truth: _Tap | None, plant: Plant) -> None:
+    def __init__(self, task: PegInHoleTask, truth: _Tap | None, meter: _Tap, plant: Plant) -> None:
         self.task = task
-        self.truth = truth
+        self.truth = truth  # the F/T sensor beside another force source (errors are scored), or None
+        self.meter = meter  # the F/T sensor's readings, wherever it is: the peak force
         self.plant = plant
         self.name = task.name
         self.errors: list[np.ndarray] = []
-        self.peak_force = 0.0
         self.true_depth = -math.inf
         site = mujoco.mj_name2id(plant.model, mujoco.mjtObj.mjOBJ_SITE, "hole_top")
         self._mouth = np.array(plant.data.site_xpos[site])
@@ -94,21 +107,21 @@ class _ScoredTask:
 
     def step(self, obs: Observation) -> Any:
         measured = self.truth.last if self.truth is not None and self.truth.last is not None else obs.wrench
-        if self.task.state_name not in ("move_to_start", "tare"):
-            f = float(np.linalg.norm(measured.force))
-            if np.isfinite(f):
-                self.peak_force = max(self.peak_force, f)
         if self.truth is not None and self.task.state_name in INSERTION_STATES:
             v = obs.wrench
             self.errors.append(np.abs(np.array([v.torque[0] - measured.torque[0], v.torque[1] - measured.torque[1],
                                                 v.force[2] - measured.force[2]])))
         tip = self.plant.tool_pose()[0]
         self.true_depth = max(self.true_depth, float((self._mouth - tip) @ self._axis))
-        return self.task.step(obs)
+        cmd = self.task.step(obs)
+        self.meter.state = self.task.state_name
+        self.meter.scoring = self.task.state_name not in ("move_to_start", "tare")
+        return cmd
 
 
 def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.ndarray, tilt: np.ndarray,
-              seed: int, peg_diameter: float | None, wrap: CellWrapper | None) -> Trial:
+              seed: int, peg_diameter: float | None, wrap: CellWrapper | None,
+              record_dir: Path | None = None) -> Trial:
     profile = replace(load_profile(resolve(cfg.plant)), seed=seed)
     if peg_diameter is not None:
         profile = replace(profile, tool=replace(profile.tool, peg_diameter=peg_diameter))
@@ -124,11 +137,15 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
         if wrap is not None:
             cell = wrap(cell)
         truth = _Tap(cell.ground_truth) if cell.ground_truth is not None else None
+        force = cell.force if truth is not None else _Tap(cell.force)  # the F/T sensor in the loop: tap it
+        meter = truth if truth is not None else force
+        assert isinstance(meter, _Tap)
         task = PegInHoleTask(pcfg, robot, nominal, cfg.scene.table_height, cfg.loop.period_s,
                              np.asarray(cfg.robot.home, float))
-        scored = _ScoredTask(task, truth, plant)
-        loop = ControlLoop(cell.arm, cell.force, scored, SafetyMonitor(cfg.safety, robot, cfg.loop.period_s),
-                           cell.ticker, None, cfg.loop.period_s, pcfg.max_duration_s,
+        scored = _ScoredTask(task, truth, meter, plant)
+        recorder = Recorder(record_dir, cfg.recording.chunk_rows) if record_dir is not None else None
+        loop = ControlLoop(cell.arm, force, scored, SafetyMonitor(cfg.safety, robot, cfg.loop.period_s),
+                           cell.ticker, recorder, cfg.loop.period_s, pcfg.max_duration_s,
                            cfg.loop.slow_cycle_fraction, ground_truth=truth)
         result = loop.run()
     finally:
@@ -144,7 +161,8 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
     return Trial(
         offset_m=(float(offset[0]), float(offset[1])), tilt_deg=tuple(np.degrees(tilt).round(3).tolist()),
         outcome=outcome, reason=reason, success=success, insertion_time_s=s["insertion_time_s"],
-        task_time_s=result.sim_time_s, true_depth_m=scored.true_depth, peak_force_n=scored.peak_force,
+        task_time_s=result.sim_time_s, true_depth_m=scored.true_depth, peak_force_n=meter.peak_force,
+        peak_state=meter.peak_state,
         probes=s["probes"], realignments=s["realignments"],
         abs_err=np.array(scored.errors) if scored.errors else np.zeros((0, 3)),
         axis_error_deg=axis_err,
@@ -153,17 +171,23 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
 
 def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, seed: int,
               max_offset_m: float = 0.002, max_tilt_deg: float = 2.0, peg_diameter: float | None = None,
-              wrap: CellWrapper | None = None, force_source: str = "sensor") -> dict[str, Any]:
+              wrap: CellWrapper | None = None, force_source: str = "sensor", only: list[int] | None = None,
+              record: Path | None = None) -> dict[str, Any]:
     """`trials` insertions with the hole offset uniformly in +-max_offset_m on x and y and tilted uniformly
     in +-max_tilt_deg about x and y (independently), each on a fresh plant: the same arm (the profile's
-    specimen), its own noise seeded from `seed`."""
+    specimen), its own noise seeded from `seed`.  `only` runs just those trial indices (same draws, to
+    look at one again); `record` logs every trial run to `record`/trial_NNN (the `run` log format)."""
     rng = np.random.default_rng(seed)
     results: list[Trial] = []
     wall0 = time.perf_counter()
     for i in range(trials):
         offset = rng.uniform(-max_offset_m, max_offset_m, 2)
         tilt = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
-        tr = run_trial(cfg, robot, pcfg, offset, tilt, seed * 1000 + i, peg_diameter, wrap)
+        if only is not None and i not in only:
+            continue
+        tr = run_trial(cfg, robot, pcfg, offset, tilt, seed * 1000 + i, peg_diameter, wrap,
+                       record / f"trial_{i:03d}" if record is not None else None)
+        tr = replace(tr, index=i)
         log.info("trial %d: %s in %s s (offset %s mm, tilt %s deg, %d probes, %d realignments) %s", i,
                  "ok" if tr.success else "FAILED", tr.insertion_time_s, np.round(np.array(tr.offset_m) * 1e3, 2),
                  tr.tilt_deg, tr.probes, tr.realignments, tr.reason)
@@ -174,7 +198,7 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
         else np.zeros((0, 3))
     profile = load_profile(resolve(cfg.plant))
     return {
-        "trials": trials,
+        "trials": len(results),
         "seed": seed,
         "force_source": force_source,
         "peg_diameter_m": peg_diameter if peg_diameter is not None else profile.tool.peg_diameter,
@@ -182,11 +206,12 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
         "hole_depth_m": cfg.scene.hole_depth,
         "max_offset_m": max_offset_m,
         "max_tilt_deg": max_tilt_deg,
-        "success_rate": len(ok) / trials if trials else None,
+        "success_rate": len(ok) / len(results) if results else None,
         "median_time_s": float(np.median(times)) if times else None,
         "max_time_s": float(np.max(times)) if times else None,
         "median_task_time_s": float(np.median([r.task_time_s for r in results])) if results else None,
         "peak_force_n": max((r.peak_force_n for r in results), default=None),
+        "peak_force_state": max(results, key=lambda r: r.peak_force_n).peak_state if results else None,
         "mae_mx_nm": float(err[:, 0].mean()) if err.size else None,
         "mae_my_nm": float(err[:, 1].mean()) if err.size else None,
         "mae_fz_n": float(err[:, 2].mean()) if err.size else None,
@@ -194,9 +219,12 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
         "max_axis_error_deg": max((r.axis_error_deg for r in results if r.axis_error_deg is not None),
                                   default=None),
         "max_realignments": max((r.realignments for r in results), default=None),
-        "failures": [{"trial": i, "offset_mm": np.round(np.array(r.offset_m) * 1e3, 3).tolist(),
+        "per_trial": [{"trial": r.index, "success": r.success, "time_s": r.insertion_time_s,
+                       "peak_force_n": round(r.peak_force_n, 1), "peak_state": r.peak_state,
+                       "realignments": r.realignments, "probes": r.probes} for r in results],
+        "failures": [{"trial": r.index, "offset_mm": np.round(np.array(r.offset_m) * 1e3, 3).tolist(),
                       "tilt_deg": list(r.tilt_deg), "outcome": r.outcome, "reason": r.reason,
                       "true_depth_mm": round(r.true_depth_m * 1e3, 2)}
-                     for i, r in enumerate(results) if not r.success],
+                     for r in results if not r.success],
         "wall_time_s": time.perf_counter() - wall0,
     }

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import enum
 import logging
 import math
@@ -79,6 +80,11 @@ class PegConfig:
     survey_lift_speed_mps: float = 0.003  # the lift off a touch point, until the tip has risen survey_lift_m
     survey_max_lift_m: float = 0.002  # the reference this far above that with the tip still down: fail
     max_lead_m: float = 0.0001  # guarded moves: the reference at most this far ahead of the measured tip
+    # ... and only this far once the descending tip has decelerated as on a contact (stall test below): a
+    # face is far stiffer than the servo (~3 N/um), and the virtual sensor's Fz needs a few cycles to show a
+    # touch, during which a 0.1 mm lead pressed up to 330 N into the face.
+    touch_lead_m: float = 0.00002
+    touch_force_n: float = 3.0  # ... and then Fz above this (not contact_force_n) on survey/contact_cycles is a touch
     survey_cycles: int = 2  # Fz over contact_force_n on this many cycles of the confirm window: touching
     survey_confirm_s: float = 0.05  # hold still after a first crossing; no second one in this time: noise
     surveyed_approach_height_m: float = 0.0005  # approach start above the surveyed mouth (known to ~0.1 mm)
@@ -88,7 +94,9 @@ class PegConfig:
     contact_cycles: int = 3  # approach: Fz over contact_force_n on this many cycles running is a contact
     inside_depth_m: float = 0.0001  # lowest rim point this far below the mouth: the lead edge is in the hole
     engage_depth_m: float = 0.0005  # highest rim point this far below the mouth: the whole face is in the hole
-    side_moment_nm: float = 1.2  # |(Mx, My)| above this with the peg in the hole: one side touching
+    # |(Mx, My)| above this with the peg in the hole: one side touching (above the virtual sensor's motion
+    # errors, which grow to ~1.3 N·m while the peg is fed fast)
+    side_moment_nm: float = 2.0
     probe_force_n: float = 10.0  # Fz held while a contact is classified
     probe_settle_s: float = 0.2
     probe_average_s: float = 0.1
@@ -114,19 +122,22 @@ class PegConfig:
     chord_backoff_m: float = 0.001  # back from the wall before measuring the chord across the lead
     chord_speed_mps: float = 0.0035  # while the wall may be near
     min_chord_m: float = 0.0012  # a shorter chord is a false block: measure it again further back
+    chord_free_margin_m: float = 0.0003  # the way back across the chord: fast up to this short of its start
     max_chord_retries: int = 2
     min_probe_travel_m: float = 0.0003  # a search move is not "blocked" before it has travelled this far
-    rotate_rate_dps: float = 8.0  # rotation toward upright about the wall contact
+    rotate_rate_dps: float = 12.0  # rotation toward upright about the wall contact
     rotate_max_force_n: float = 20.0  # the rotation slows to a stop as Fz approaches this
     rotate_give_up_s: float = 3.0  # still blocked after this long: insert from the tilt reached
     insert_force_n: float = 15.0  # Fz setpoint while pushing in
     insert_speed_limit_mps: float = 0.015  # the impedance law's step is clipped to this speed
-    free_insert_speed_mps: float = 0.012  # feed while the peg meets no resistance in the hole
+    free_insert_speed_mps: float = 0.016  # feed while the peg meets no resistance in the hole
     entry_speed_mps: float = 0.005  # ... but slower until the peg is entry_depth_m deep (stiff contacts)
     entry_depth_m: float = 0.004
     hole_diameter_m: float = 0.0218  # the nominal hole (paper: 21.8 mm); with the peg, the nominal clearance
-    wall_clearance_m: float | None = None  # upright on the wall: step this far off it (default: half the
-    #                                        nominal radial clearance, which centres the peg; 0.1 mm for 21.4)
+    # Upright with the lead side on the wall: step this far off it.  Default: the nominal radial clearance
+    # (hole - peg) / 2, which puts the peg's axis on the hole's (0.2 mm for the paper's 21.4 in 21.8; half
+    # of it left the peg rubbing the wall all the way in and dragging on it on the way out, 90-150 N spikes).
+    wall_clearance_m: float | None = None
     target_depth_m: float = 0.027  # success: the tip (face centre) this far below the mouth
     stall_s: float = 0.6  # depth gained less than stall_depth_m over this window: stuck
     stall_depth_m: float = 0.0003
@@ -138,7 +149,11 @@ class PegConfig:
     # is within 0.1 deg, and tilting on the virtual sensor's moment errors jammed the peg at the mouth.
     rotation_gain: float = 0.0
     shift_gain: float = 0.004  # m/s of compliant tip shift per N·m of tool moment
-    comply_deadband_nm: float = 0.3  # |(Mx, My)| below this: no compliant motion (the source's error band)
+    # |(Mx, My)| below this: no compliant motion and no slower feed -- the force source's error band.  The
+    # virtual sensor errs by +-0.5 N·m while the arm moves slowly (friction at low joint speeds) and up to
+    # ~1.3 N·m during the fast feed; at 0.3 its errors shifted the peg into the wall (0.2 mm radial
+    # clearance) within ~0.1 s.  The centred peg on the surveyed axis needs no compliance to go in.
+    comply_deadband_nm: float = 1.5
     max_tilt_deg: float = 15.0  # the peg tilted further than this from vertical: fail
     release_time_s: float = 0.3  # ramp the push force to zero before retracting
     retract_height_m: float = 0.01  # tip this high above the mouth at the end
@@ -158,10 +173,14 @@ class PegConfig:
             require(len(self.hole_xy) == 2, f"{where}.hole_xy", f"must be (x, y), got {self.hole_xy}")
         require(0 < self.contact_force_n < self.probe_force_n < self.max_force_n, f"{where}.probe_force_n",
                 "must lie between contact_force_n and max_force_n")
+        require(self.touch_force_n <= self.contact_force_n, f"{where}.touch_force_n",
+                f"must not exceed contact_force_n ({self.contact_force_n})")
         require(self.contact_force_n < self.insert_force_n < self.max_force_n, f"{where}.insert_force_n",
                 "must lie between contact_force_n and max_force_n")
         require(self.contact_moment_nm < self.side_moment_nm < self.max_moment_nm, f"{where}.side_moment_nm",
                 "must lie between contact_moment_nm and max_moment_nm")
+        require(self.comply_deadband_nm < self.side_moment_nm, f"{where}.comply_deadband_nm",
+                f"must be below side_moment_nm ({self.side_moment_nm})")
         require(self.inside_depth_m < self.target_depth_m, f"{where}.target_depth_m", "must exceed inside_depth_m")
         require(self.probe_settle_s + self.probe_average_s <= self.max_probe_s,
                 f"{where}.max_probe_s", "must cover probe_settle_s + probe_average_s")
@@ -175,10 +194,10 @@ class PegConfig:
                      "max_approach_m", "inside_depth_m", "engage_depth_m", "probe_settle_s", "probe_average_s",
                      "backoff_m", "backoff_speed_mps", "search_step_m", "max_offset_m", "slide_lift_m",
                      "slide_speed_mps", "slide_fast_m", "slide_slow_speed_mps", "slide_block_m",
-                     "block_moment_nm", "max_slide_m", "chord_backoff_m", "chord_speed_mps",
+                     "block_moment_nm", "max_slide_m", "chord_backoff_m", "chord_speed_mps", "chord_free_margin_m",
                      "min_probe_travel_m", "rotate_rate_dps", "rotate_max_force_n", "rotate_give_up_s",
                      "insert_speed_limit_mps", "free_insert_speed_mps", "entry_speed_mps", "entry_depth_m",
-                     "stall_s", "stall_depth_m", "max_lead_m", "comply_deadband_nm",
+                     "stall_s", "stall_depth_m", "max_lead_m", "touch_lead_m", "touch_force_n", "comply_deadband_nm",
                      "realign_time_s", "realign_force_n", "realign_lift_m", "shift_gain",
                      "release_time_s", "retract_height_m", "retract_speed_mps", "retract_slow_speed_mps",
                      "max_pull_n", "max_pull_s",
@@ -313,6 +332,9 @@ class PegInHoleTask(MachineTask):
         self._pull_t = 0.0
         self._chord_retries = 0
         self._lifting = False
+        self._z_track: collections.deque[float] = collections.deque(maxlen=2 * cfg.stall_cycles + 1)  # tip z
+        self._pressing = False  # a guarded descent decelerated as on a contact: the lead is cut to touch_lead_m
+        self._descend_t = -1.0  # the task time of the last guarded-descent step
         self._lift_dir = EZ.copy()
         self._free_z = 0.0
         self._next_target = self.start.copy()
@@ -337,6 +359,7 @@ class PegInHoleTask(MachineTask):
         self._phase_from = np.zeros(3)
         self._chord_a = np.zeros(3)
         self._chord_mid = 0.0
+        self._chord_free = 0.0  # how far the chord measurement travelled before meeting the wall
         self._pivot = np.zeros(3)
         self._release_from = 0.0
         self._setpoint = 0.0
@@ -526,7 +549,10 @@ class PegInHoleTask(MachineTask):
         touch point recorded) and confirm with `cycles` crossings in all within survey_confirm_s; a lone
         spike (a sensor transient) lets the move go on."""
         c = self.cfg
-        if np.isfinite(fz) and fz > c.contact_force_n:
+        # A tip stalled in its descent (see _descend) is kinematic evidence of a touch: the wrench need only
+        # agree at touch_force_n (the lead cut to touch_lead_m presses with a few N only).
+        threshold = c.touch_force_n if self._pressing else c.contact_force_n
+        if np.isfinite(fz) and fz > threshold:
             if self._touching == 0:
                 self._touch_point = rim_points(self._tip, self.radius)[0]
                 self._touch_t = 0.0
@@ -539,15 +565,38 @@ class PegInHoleTask(MachineTask):
                 return "free"
         if self._touching >= cycles:
             self._touching = 0
+            self._pressing = False
             return "touch"
         return "hold" if self._touching else "free"
 
     def _descend(self, v: float) -> None:
         """Lower the reference at `v`, but never more than max_lead_m ahead of the measured tip: after a fast
-        move the tip still trails, and that windup would press into a contact before it is seen."""
+        move the tip still trails, and that windup would press into a contact before it is seen.  A tip that
+        was descending and has stalled (its last `stall_cycles` progress under stall_fraction of the
+        commanded, the ones before over half of it) is on something: the reference is drawn back to
+        touch_lead_m ahead until the tip moves on -- the force on a stiff face stays bounded while the
+        wrench confirms the touch."""
+        c = self.cfg
+        z_now = float(self._tip.translation[2])
+        if abs(self.t - self.dt - self._descend_t) > 0.5 * self.dt:  # a new descent (or one resumed after a hold)
+            self._z_track.clear()
+            self._pressing = False
+        self._descend_t = self.t
+        self._z_track.append(z_now)
+        k = c.stall_cycles
+        if len(self._z_track) == self._z_track.maxlen:
+            before = self._z_track[0] - self._z_track[k]
+            recent = self._z_track[k] - self._z_track[-1]
+            step = v * k * self.dt
+            if recent < c.stall_fraction * step and before > 0.5 * step:
+                self._pressing = True
+            elif recent > 0.5 * step:
+                self._pressing = False
         z = float(self.ref.translation[2]) - v * self.dt
-        self.ref.translation[2] = max(z, min(float(self.ref.translation[2]),
-                                             float(self._tip.translation[2]) - self.cfg.max_lead_m))
+        if self._pressing:  # take back the lead the servo had wound up: it presses into the face
+            self.ref.translation[2] = max(z, z_now - c.touch_lead_m)
+        else:
+            self.ref.translation[2] = max(z, min(float(self.ref.translation[2]), z_now - c.max_lead_m))
 
     def _survey_drop(self, k: int) -> float:
         """How much lower than the default start touch k can begin: a point opposite an earlier one lies
@@ -696,17 +745,18 @@ class PegInHoleTask(MachineTask):
             return False
         perp = np.array([-self.lead[1], self.lead[0], 0.0])
         # (direction, speed, distance for a fixed move or None to move until blocked, fast distance)
+        # The way back across the chord is free as far as where its measurement started (the peg was there).
         phases = [(self.lead, c.slide_speed_mps, None, c.slide_fast_m),
                   (-self.lead, c.slide_speed_mps, c.chord_backoff_m, 0.0),
                   (perp, c.chord_speed_mps, None, 0.0),
-                  (-perp, c.chord_speed_mps, None, 0.0),
+                  (-perp, c.slide_speed_mps, None, max(0.0, self._chord_free - c.chord_free_margin_m)),
                   (perp, c.slide_speed_mps, 0.0, 0.0),  # to the chord's midpoint (distance set below)
                   (self.lead, c.chord_speed_mps, None, 0.0)]
         d, v, dist, fast = phases[self._phase]
         if self._phase == 4:
             dist = self._chord_mid
         if dist is None and self._slid >= fast:
-            v = min(v, c.chord_speed_mps) if fast == 0.0 else c.slide_slow_speed_mps
+            v = c.slide_slow_speed_mps if self._phase == 0 else c.chord_speed_mps
         step = v * self.dt if dist is None else min(v * self.dt, dist - self._slid)
         self.ref.translation += d * step
         self._slid += step
@@ -746,6 +796,7 @@ class PegInHoleTask(MachineTask):
             self.ref.translation[:2] = self._tip.translation[:2]
         if self._phase == 2:
             self._chord_a = self._tip.translation.copy()
+            self._chord_free = max(0.0, moved)
         if self._phase == 3:
             chord = float((self._chord_a - self._tip.translation) @ perp)
             self._chord_mid = chord / 2
@@ -780,7 +831,7 @@ class PegInHoleTask(MachineTask):
         if ref_tilt <= 1e-4:
             # Upright with the lead side on the wall: step off it by about half the clearance.
             step = c.wall_clearance_m if c.wall_clearance_m is not None else \
-                (c.hole_diameter_m - c.peg_diameter_m) / 4
+                (c.hole_diameter_m - c.peg_diameter_m) / 2
             self.ref.translation -= self.lead * step
             self._begin_insert(f"upright (measured tilt {tilt:.2f} deg)")
             return False
@@ -818,7 +869,8 @@ class PegInHoleTask(MachineTask):
             # Slowly near the mouth and after a stall (something stiff is ahead).
             slow = self.depth <= c.entry_depth_m or self.realigns > 0
             v = min(c.entry_speed_mps, c.free_insert_speed_mps) if slow else c.free_insert_speed_mps
-            self.ref.translation += axis * v * max(0.0, 1.0 - m / c.side_moment_nm) * self.dt
+            side = max(0.0, m - c.comply_deadband_nm) / (c.side_moment_nm - c.comply_deadband_nm)
+            self.ref.translation += axis * v * max(0.0, 1.0 - side) * self.dt
             self.law.reset()
             self._feeding = True
         else:
@@ -895,6 +947,7 @@ class PegInHoleTask(MachineTask):
 
     def _begin_slide(self) -> None:
         self._chord_retries = 0
+        self._chord_free = 0.0
         self._phase = 0
         self._phase_clear = False
         self._phase_time = 0.0

@@ -38,7 +38,9 @@ class TestContactStates:
         assert classify(12.0, 0.0, 0.3, 0.0009, -0.0036, pcfg) == Contact.STUCK_INSIDE
 
     def test_stuck_inside_one_side_touching(self, pcfg):
-        assert classify(12.0, 0.1, 1.5, 0.011, 0.011, pcfg) == Contact.STUCK_INSIDE
+        assert classify(12.0, 0.1, pcfg.side_moment_nm + 0.3, 0.011, 0.011, pcfg) == Contact.STUCK_INSIDE
+        # ... but not on a moment inside the force source's error band
+        assert classify(12.0, 0.1, pcfg.side_moment_nm - 0.3, 0.011, 0.011, pcfg) == Contact.ALIGNED
 
     def test_aligned_pushing_along_the_axis(self, pcfg):
         assert classify(20.0, 0.1, -0.1, 0.015, 0.015, pcfg) == Contact.ALIGNED
@@ -175,3 +177,91 @@ def test_a_face_tilted_beyond_the_limit_fails_by_name(cfg):
     task._survey_points = [centre + np.array([x, y, s * x]) for x, y in ((0.0, 0.0145), (0.0, -0.0145), (-0.0145, 0.0))]
     assert not task._fit_face()
     assert task.outcome == "failed" and "fixture face tilted 6.0 deg" in task.reason
+
+
+def test_a_guarded_descent_that_stalls_on_a_face_cuts_its_lead(cfg):
+    # The tip descends at the commanded speed, then stops dead (a stiff face): the reference may lead it
+    # by only touch_lead_m from then on (the force on the face stays bounded while the wrench confirms
+    # the touch); once the tip moves on again, the full lead is back.
+    import pinocchio as pin
+
+    from main import robot_for
+    from tasks.peg import PegInHoleTask
+
+    robot = robot_for(cfg, "peg")
+    pc = PegConfig()
+    dt = cfg.loop.period_s
+    task = PegInHoleTask(pc, robot, np.asarray(cfg.scene.hole_center), cfg.scene.table_height, dt,
+                         np.asarray(cfg.robot.home, float))
+    v = pc.survey_speed_mps
+    z = 0.06
+
+    def cycle(tip_z):
+        task.t += dt
+        task._tip = pin.SE3(np.eye(3), np.array([0.45, -0.12, tip_z]))
+        task._descend(v)
+        return tip_z - float(task.ref.translation[2])  # how far the reference leads the tip
+
+    task.ref = pin.SE3(np.eye(3), np.array([0.45, -0.12, z]))
+    leads = [cycle(z - v * dt * k) for k in range(12)]  # moving freely at the commanded speed
+    assert max(leads) <= pc.max_lead_m + 1e-12 and not task._pressing
+    z_face = z - v * dt * 11
+    leads = [cycle(z_face) for _ in range(10)]  # stopped dead on the face
+    assert task._pressing
+    assert leads[-1] <= pc.touch_lead_m + 1e-12
+    assert leads[-1] < pc.max_lead_m / 2
+    leads = [cycle(z_face - v * dt * k) for k in range(1, 8)]  # it was a stick, not a face: it moves on
+    assert not task._pressing
+
+
+def test_a_descent_starting_from_rest_keeps_its_full_lead(cfg):
+    # A tip that has not moved yet (the arm sticks at the start of a move) has not decelerated onto
+    # anything: the lead stays max_lead_m so the servo can break it free.
+    import pinocchio as pin
+
+    from main import robot_for
+    from tasks.peg import PegInHoleTask
+
+    robot = robot_for(cfg, "peg")
+    pc = PegConfig()
+    dt = cfg.loop.period_s
+    task = PegInHoleTask(pc, robot, np.asarray(cfg.scene.hole_center), cfg.scene.table_height, dt,
+                         np.asarray(cfg.robot.home, float))
+    task.ref = pin.SE3(np.eye(3), np.array([0.45, -0.12, 0.06]))
+    for _ in range(15):
+        task.t += dt
+        task._tip = pin.SE3(np.eye(3), np.array([0.45, -0.12, 0.06]))
+        task._descend(pc.survey_speed_mps)
+    assert not task._pressing
+    assert 0.06 - float(task.ref.translation[2]) == pytest.approx(pc.max_lead_m)
+
+
+@pytest.mark.slow
+def test_bench_runs_one_trial_again_and_records_it(capsys):
+    # `--only` re-runs trial 1 of a 3-trial bench (the same draws), `--record` logs it; the peak force is
+    # the F/T sensor's, with the state it was measured in.
+    import json
+    from pathlib import Path
+
+    from cell.recorder import read_log
+    from main import main
+
+    code = main(["-q", "bench", "peg-in-hole", "--trials", "3", "--only", "1", "--seed", "2", "--record",
+                 "--force-source", "sensor", "--json"])
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 0
+    assert out["trials"] == 1 and [t["trial"] for t in out["per_trial"]] == [1]
+    assert out["per_trial"][0]["success"], out["failures"]
+    assert out["peak_force_n"] == pytest.approx(out["per_trial"][0]["peak_force_n"], abs=0.05)
+    assert out["peak_force_state"] not in ("", "move_to_start", "tare")
+    (bench_dir,) = Path("runs").glob("*-bench-peg")
+    log = read_log(bench_dir / "trial_001")
+    assert {"approach", "insert", "retract"} <= set(log.column("state").to_pylist())
+    assert not (bench_dir / "trial_000").exists()
+
+
+def test_bench_refuses_a_trial_number_outside_the_bench(capsys):
+    from main import main
+
+    assert main(["bench", "peg-in-hole", "--trials", "3", "--only", "3", "--force-source", "sensor"]) == 2
+    assert "--only [3]: trial numbers must lie in 0..2" in capsys.readouterr().err
