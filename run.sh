@@ -4,4 +4,4 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 source scripts/venv.sh
-exec "$VENV_PY" main.py run wipe --cell sim "$@"
+exec "$VENV_PY" main.py run peg-in-hole --cell sim "$@"

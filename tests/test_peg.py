@@ -265,3 +265,25 @@ def test_bench_refuses_a_trial_number_outside_the_bench(capsys):
 
     assert main(["bench", "peg-in-hole", "--trials", "3", "--only", "3", "--force-source", "sensor"]) == 2
     assert "--only [3]: trial numbers must lie in 0..2" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_run_peg_in_hole_records_states_wrench_depth_and_a_plot(capsys):
+    # The main job's command on the simulated cell (here with the F/T sensor in the loop, which needs no
+    # prepared artefacts): done, and the recording holds what the paper's Fig. 16 shows.
+    import json
+    from pathlib import Path
+
+    from cell.recorder import read_log
+    from main import main
+
+    code = main(["-q", "run", "peg-in-hole", "--force-source", "sensor", "--json"])
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 0 and s["outcome"] == "done", s
+    assert s["inserted"] and s["max_depth_m"] >= 0.027 and s["peak_force_n"] < 80
+    run = Path(s["run_dir"])
+    assert (run / "plot.png").exists()
+    log = read_log(run)
+    assert {"contact", "depth", "fz", "mx", "my", "tip_x", "tilt_x"} <= set(log.column_names)
+    assert {"survey", "approach", "slide", "rotate", "insert", "release", "retract"} <= \
+        set(log.column("state").to_pylist())
