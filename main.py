@@ -28,7 +28,7 @@ def robot_for(cfg: CellConfig, tool: str) -> RobotModel:
     return load_robot(resolve(cfg.robot.urdf), tcp, cfg.robot.tool_mass, cfg.robot.tool_com)
 
 
-def build_task(name: str, cfg: CellConfig, robot: RobotModel) -> tuple[Any, float]:
+def build_task(name: str, cfg: CellConfig, robot: RobotModel, force_source: str = "virtual") -> tuple[Any, float]:
     if name == "wipe":
         from tasks.wipe import WipeTask, load_wipe_config
 
@@ -41,7 +41,7 @@ def build_task(name: str, cfg: CellConfig, robot: RobotModel) -> tuple[Any, floa
     if name == "peg-in-hole":
         from tasks.peg import PegInHoleTask, load_peg_config
 
-        pcfg = load_peg_config(cfg.tasks.get("peg"), f"{cfg.source}: tasks.peg")
+        pcfg = load_peg_config(cfg.tasks.get("peg"), f"{cfg.source}: tasks.peg", force_source)
         try:
             task = PegInHoleTask(pcfg, robot, np.asarray(cfg.scene.hole_center, float), cfg.scene.table_height,
                                  cfg.loop.period_s, np.asarray(cfg.robot.home))
@@ -179,7 +179,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         cfg.plant = str(Path(args.plant).resolve())
     tool = TASK_TOOLS.get(args.task, "wipe")
     robot = robot_for(cfg, tool)
-    task, max_duration = build_task(args.task, cfg, robot)
+    task, max_duration = build_task(args.task, cfg, robot, args.force_source)
     kind = cell_kind(cfg, args.cell)
     if args.force_source == "virtual":
         ensure_virtual_artefacts(cfg, tool, kind, robot, args.seed)
@@ -293,7 +293,7 @@ def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
     if args.plant:
         cfg.plant = str(Path(args.plant).resolve())
     robot = robot_for(cfg, "peg")
-    pcfg = load_peg_config(cfg.tasks.get("peg"), f"{cfg.source}: tasks.peg")
+    pcfg = load_peg_config(cfg.tasks.get("peg"), f"{cfg.source}: tasks.peg", args.force_source)
     if args.force_source == "virtual":
         ensure_virtual_artefacts(cfg, "peg", "sim", robot)
 

@@ -78,6 +78,22 @@ class TestConfig:
         with pytest.raises(ConfigError, match="unknown key 'depth'"):
             load_peg_config({"depth": 0.03}, "tasks.peg")
 
+    def test_overrides_apply_to_their_force_source_only(self):
+        raw = {"comply_deadband_nm": 1.5, "by_force_source": {"sensor": {"comply_deadband_nm": 0.3}}}
+        assert load_peg_config(raw, "tasks.peg", "sensor").comply_deadband_nm == 0.3
+        assert load_peg_config(raw, "tasks.peg", "virtual").comply_deadband_nm == 1.5
+
+    def test_the_shipped_config_complies_early_only_on_the_ft_sensor(self, cfg):
+        raw = cfg.tasks["peg"]
+        sensor, virtual = load_peg_config(raw, "tasks.peg", "sensor"), load_peg_config(raw, "tasks.peg", "virtual")
+        assert sensor.comply_deadband_nm < 0.5 < 1.0 < virtual.comply_deadband_nm
+
+    def test_bad_overrides_are_named(self):
+        with pytest.raises(ConfigError, match="unknown force source 'ft'"):
+            load_peg_config({"by_force_source": {"ft": {}}}, "tasks.peg")
+        with pytest.raises(ConfigError, match=r"tasks.peg.side_moment_nm.*by_force_source.sensor overrides"):
+            load_peg_config({"by_force_source": {"sensor": {"side_moment_nm": 9.0}}}, "tasks.peg", "sensor")
+
 
 def test_wrench_errors_only_over_the_insertion():
     log = {
