@@ -86,8 +86,9 @@ class OperatorLoads:
 
     def before_posture(self, index: int, total: int, duration_s: float) -> None:
         self.prompt(
-            f"posture {index + 1}/{total}: keep clear of the tool and press Enter; the arm moves there and rests. "
-            f"When it has rested ~1 s, push the tool by hand (0-75 N, varying, incl. twisting) for {duration_s:.0f} s. "
+            f"posture {index + 1}/{total}: keep clear of the tool and press Enter; the arm moves there and rests "
+            f"(it re-zeroes at the end of the rest: do not touch it before). When the log says PUSH THE TOOL NOW, "
+            f"push the tool by hand (0-75 N, varying, incl. twisting) for {duration_s:.0f} s. "
         )
 
     def update(self, t: float) -> tuple[int, bool]:
@@ -248,6 +249,17 @@ def _mae(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.mean(np.abs(a - b))) if len(a) else float("nan")
 
 
+def error_split(err: np.ndarray, group: np.ndarray) -> dict[str, float]:
+    """An axis' error over the held-out samples split by posture: `posture_offset` is the mean |mean
+    error| of each posture (sample-weighted; what its free-space re-bias and the model's static error
+    leave), `within_posture` the MAE about those means (the observer's noise and its per-load error)."""
+    offset = np.zeros_like(err)
+    for g in np.unique(group):
+        offset[group == g] = err[group == g].mean()
+    return {"posture_offset": round(float(np.mean(np.abs(offset))), 4),
+            "within_posture": round(float(np.mean(np.abs(err - offset))), 4)}
+
+
 # ========================================================================================= calibrate
 def calibrate(
     cfg: CellConfig,
@@ -272,6 +284,9 @@ def calibrate(
     dt = cfg.loop.period_s
     model_dir = Path(model_dir) if model_dir is not None else vs.path("model", tool)
     out_dir = Path(out_dir) if out_dir is not None else vs.path("calibration", tool)
+    if cal.settle_s <= vs.rebias_window_s:
+        raise ConfigError(f"virtual_sensor.calibration.settle_s {cal.settle_s} s must exceed "
+                          f"virtual_sensor.rebias_window_s {vs.rebias_window_s} s: the re-bias would average the move")
     model = load_observer_model(model_dir, robot)
     targets = posture_targets(robot, cal, np.asarray(cfg.robot.home, float))
     base = Path(cfg.recording.directory)
@@ -305,6 +320,7 @@ def calibrate(
     holdout = set(cal.holdout)
     sel = [(s["phase"] == PHASES["load"]) & (s["steady"] > 0) for s in streams]
     is_test = np.concatenate([np.full(int(m.sum()), i in holdout) for i, m in enumerate(sel)])
+    posture_of = np.concatenate([np.full(int(m.sum()), i) for i, m in enumerate(sel)])
     q_rows = np.concatenate([s["q"][m] for s, m in zip(streams, sel, strict=True)])
     sensor = np.concatenate([s["sensor"][m] for s, m in zip(streams, sel, strict=True)])
     if is_test.sum() == 0 or (~is_test).sum() == 0:
@@ -314,6 +330,8 @@ def calibrate(
 
     routes: dict[str, dict[str, Any]] = {}
     boosters: dict[str, dict[str, Any]] = {}
+    chosen = f"{vs.observer}+{vs.mapping}"
+    split: dict[str, dict[str, float]] = {}
     for kind in tqdm(OBSERVERS, desc="observers", unit="observer"):
         obs = make_observer(kind, model, dt, R, np.asarray(vs.process_noise_nm), vs.momentum_gain, vs.rebias_window_s,
                             vs.innovation_gate)
@@ -342,11 +360,13 @@ def calibrate(
             else:
                 r.update(in_sample)
             routes[f"{kind}+{mapping}"] = r
-    chosen = f"{vs.observer}+{vs.mapping}"
+            if f"{kind}+{mapping}" == chosen:
+                split = {f"{a}_{unit}": error_split(w[:, AXES.index(a)] - ref[:, AXES.index(a)], posture_of[is_test])
+                         for a, unit in (("fz", "n"), ("mx", "nm"), ("my", "nm"))}
     report = {
         "tool": tool, "route": chosen,
         "fz_mae_n": routes[chosen]["fz_mae_n"], "mx_mae_nm": routes[chosen]["mx_mae_nm"],
-        "my_mae_nm": routes[chosen]["my_mae_nm"], "routes": routes,
+        "my_mae_nm": routes[chosen]["my_mae_nm"], "error_split": split, "routes": routes,
         "postures": len(targets), "holdout_postures": sorted(holdout),
         "train_samples": int((~is_test).sum()), "heldout_samples": int(is_test.sum()),
         "free_motion_samples": int(sum(int(m.sum()) for m in free_sel)),

@@ -3,18 +3,20 @@ artefact, the operator prompt on the real cell, and the wiping task with the vir
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
+import numpy as np
 import pytest
 import yaml
 
-from cell.config import CONFIG_DIR
+from cell.config import CONFIG_DIR, load_config
 from cell.recorder import read_log
 from cell.virtual_sensor import build_virtual_source
-from drivers.errors import DataError
+from drivers.errors import ConfigError, DataError
 from main import calibration_cells, main, robot_for
-from tasks.calibrate import OperatorLoads, artefacts_missing, prepare
+from tasks.calibrate import OperatorLoads, artefacts_missing, calibrate, error_split, prepare
 from tests.vsfixtures import artefacts
 
 
@@ -36,6 +38,14 @@ def test_calibration_reports_every_route_on_held_out_postures(vs):
     assert rep["route"] == "kalman+jacobian" and rep["fz_mae_n"] < 3.0
     for r in rep["routes"].values():
         assert {"fz_mae_n", "mx_mae_nm", "my_mae_nm"} <= set(r)
+    # The configured route's error split by posture: the re-bias offset and the noise about it
+    # (|e| <= |offset| + |e - offset|, so the parts bound the MAE).
+    split = rep["error_split"]
+    assert set(split) == {"fz_n", "mx_nm", "my_nm"}
+    for key, total in (("fz_n", rep["fz_mae_n"]), ("mx_nm", rep["mx_mae_nm"]), ("my_nm", rep["my_mae_nm"])):
+        part = split[key]
+        assert part["posture_offset"] >= 0 and part["within_posture"] > 0
+        assert total <= part["posture_offset"] + part["within_posture"] + 2e-4
     # The metadata names what the calibration belongs to.
     assert doc["robot"] == "tm5-700" and doc["tool"]["name"] == "wipe" and len(doc["model"]["sha256"]) == 64
     assert len(doc["measurement_var"]) == 6 and all(v > 0 for v in doc["measurement_var"])
@@ -105,6 +115,8 @@ def test_the_real_cell_asks_the_operator_on_the_cli():
     loads = OperatorLoads(prompt=lambda text: asked.append(text) or "")
     loads.before_posture(2, 9, 20.0)
     assert len(asked) == 1 and "posture 3/9" in asked[0] and "20 s" in asked[0]
+    # The operator pushes when the task says so (after the rest's re-zero), whatever settle_s is.
+    assert "PUSH THE TOOL NOW" in asked[0]
     assert loads.update(3.0) == (-1, True) and not loads.scripted
     cfg, robot = artefacts()["cfg"], artefacts()["robot"]
     opener, applier = calibration_cells(cfg, "real", "wipe", robot, None)
@@ -131,3 +143,29 @@ def test_wipe_runs_with_the_virtual_sensor_in_the_loop(vs, tmp_path, capsys):
     assert s["virtual_vs_sensor_fz_mae_n"] < 5.0 and s["force_mae_n"] < 6.0
     log = read_log(tmp_path / s["run_dir"]) if not s["run_dir"].startswith("/") else read_log(s["run_dir"])
     assert {"fz", "sensor_fz", "sensor_mx"} <= set(log.column_names)
+
+
+def test_error_split_separates_posture_offsets_from_noise():
+    err = np.array([0.3, 0.1, 0.2, -0.1, 0.1, 0.0])  # posture 0: mean 0.2, posture 1: mean 0.0
+    group = np.array([0, 0, 0, 1, 1, 1])
+    split = error_split(err, group)
+    assert split["posture_offset"] == pytest.approx(0.1)  # (3 * 0.2 + 3 * 0.0) / 6
+    assert split["within_posture"] == pytest.approx((0.1 + 0.1 + 0 + 0.1 + 0.1 + 0) / 6, abs=1e-4)
+
+
+def test_a_rest_shorter_than_the_rebias_window_is_refused_before_the_cell_opens(vs):
+    cfg = vs["cfg"]
+    short = dataclasses.replace(cfg.virtual_sensor.calibration, settle_s=cfg.virtual_sensor.rebias_window_s)
+    cfg = dataclasses.replace(cfg, virtual_sensor=dataclasses.replace(cfg.virtual_sensor, calibration=short))
+
+    def must_not_open():
+        raise AssertionError("calibrate opened a cell with an impossible rest")
+
+    with pytest.raises(ConfigError, match="settle_s .* must exceed virtual_sensor.rebias_window_s"):
+        calibrate(cfg, "wipe", vs["robot"], must_not_open, lambda h: None)
+
+
+def test_the_default_rest_outlasts_the_rebias_window_and_the_creep():
+    cfg = load_config()
+    assert cfg.virtual_sensor.calibration.settle_s >= 1.2  # the joints creep ~1 s after a move
+    assert cfg.virtual_sensor.calibration.settle_s > cfg.virtual_sensor.rebias_window_s
