@@ -169,6 +169,9 @@ class VirtualSensorConfig:
     (as `recording.directory` is): the model lab's H1 for that tool and its calibration."""
 
     observer: Literal["kalman", "momentum"] = "kalman"
+    # Per tool (wipe | peg): the observer its tasks use where it is not `observer` (calibrate reports this
+    # route for the tool).
+    observer_by_tool: dict[str, Literal["kalman", "momentum"]] = field(default_factory=dict)
     mapping: Literal["jacobian", "learned"] = "jacobian"
     data_dir: str = "artifacts/data/{tool}"
     model_dir: str = "artifacts/models/{tool}"
@@ -195,9 +198,14 @@ class VirtualSensorConfig:
         require(self.momentum_gain > 0, f"{where}.momentum_gain", "must be > 0 (1/s)")
         require(self.innovation_gate >= 0, f"{where}.innovation_gate", "must be >= 0 (0: off)")
         require(self.rebias_window_s > 0, f"{where}.rebias_window_s", "must be > 0")
+        for tool in self.observer_by_tool:
+            require(tool in ("wipe", "peg"), f"{where}.observer_by_tool", f"unknown tool '{tool}' (wipe, peg)")
         require(len(self.wrench_point) == 3, f"{where}.wrench_point", "must have 3 values (x, y, z) in m")
         require(self.singular_sigma > 0 and self.max_damping > 0, f"{where}.singular_sigma",
                 "and max_damping must be > 0")
+
+    def observer_for(self, tool: str) -> str:
+        return self.observer_by_tool.get(tool, self.observer)
 
     def path(self, which: str, tool: str) -> Path:
         return Path(str(getattr(self, f"{which}_dir")).replace("{tool}", tool))

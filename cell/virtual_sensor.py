@@ -217,7 +217,7 @@ def build_virtual_source(cfg: VirtualSensorConfig, robot: RobotModel, tool: str,
     calibration_dir = Path(calibration_dir) if calibration_dir is not None else cfg.path("calibration", tool)
     model = load_observer_model(model_dir, robot)
     cal = load_calibration(calibration_dir, robot, tool, model_dir, model)
-    return source_from(cfg, robot, dt, model, cal, observer or cfg.observer, mapping or cfg.mapping,
+    return source_from(cfg, robot, dt, model, cal, observer or cfg.observer_for(tool), mapping or cfg.mapping,
                        str(calibration_dir))
 
 

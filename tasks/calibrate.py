@@ -330,7 +330,7 @@ def calibrate(
 
     routes: dict[str, dict[str, Any]] = {}
     boosters: dict[str, dict[str, Any]] = {}
-    chosen = f"{vs.observer}+{vs.mapping}"
+    chosen = f"{vs.observer_for(tool)}+{vs.mapping}"
     split: dict[str, dict[str, float]] = {}
     for kind in tqdm(OBSERVERS, desc="observers", unit="observer"):
         obs = make_observer(kind, model, dt, R, np.asarray(vs.process_noise_nm), vs.momentum_gain, vs.rebias_window_s,

@@ -231,3 +231,20 @@ def test_kalman_gate_rejects_a_break_away_swing_but_passes_a_real_contact(vs):
     settled = [feed(np.zeros(6))[1] for _ in range(20)][-1]
     step = [feed(np.array([0, 8.0, 0, 0, 0, 0]))[1] for _ in range(40)]
     assert step[-1] - settled > 6.0 and step[10] - settled > 3.0
+
+
+def test_each_tool_gets_its_configured_observer():
+    from cell.config import VirtualSensorConfig, load_config
+    from cell.configio import load_dataclass
+    from drivers.errors import ConfigError
+
+    vs = load_config().virtual_sensor
+    assert vs.observer_for("peg") == vs.observer_by_tool.get("peg", vs.observer)
+    one = load_dataclass(VirtualSensorConfig, {"observer": "momentum", "observer_by_tool": {"peg": "kalman"}}, "vs")
+    assert (one.observer_for("wipe"), one.observer_for("peg")) == ("momentum", "kalman")
+    import pytest
+
+    with pytest.raises(ConfigError, match="vs.observer_by_tool.*unknown tool 'drill'"):
+        load_dataclass(VirtualSensorConfig, {"observer_by_tool": {"drill": "kalman"}}, "vs")
+    with pytest.raises(ConfigError, match="observer_by_tool"):
+        load_dataclass(VirtualSensorConfig, {"observer_by_tool": {"peg": "luenberger"}}, "vs")
