@@ -139,6 +139,7 @@ class PegConfig:
     # (hole - peg) / 2, which puts the peg's axis on the hole's (0.2 mm for the paper's 21.4 in 21.8; half
     # of it left the peg rubbing the wall all the way in and dragging on it on the way out, 90-150 N spikes).
     wall_clearance_m: float | None = None
+    centre_speed_mps: float = 0.002  # ... taken at this speed
     target_depth_m: float = 0.027  # success: the tip (face centre) this far below the mouth
     stall_s: float = 0.6  # depth gained less than stall_depth_m over this window: stuck
     stall_depth_m: float = 0.0003
@@ -197,7 +198,8 @@ class PegConfig:
                      "slide_speed_mps", "slide_fast_m", "slide_slow_speed_mps", "slide_block_m",
                      "block_moment_nm", "max_slide_m", "chord_backoff_m", "chord_speed_mps", "chord_free_margin_m",
                      "min_probe_travel_m", "rotate_rate_dps", "rotate_max_force_n", "rotate_give_up_s",
-                     "insert_speed_limit_mps", "free_insert_speed_mps", "entry_speed_mps", "entry_depth_m",
+                     "insert_speed_limit_mps", "free_insert_speed_mps", "centre_speed_mps", "entry_speed_mps",
+                     "entry_depth_m",
                      "stall_s", "stall_depth_m", "max_lead_m", "touch_lead_m", "touch_force_n", "comply_deadband_nm",
                      "realign_time_s", "realign_force_n", "realign_lift_m", "shift_gain",
                      "release_time_s", "retract_height_m", "retract_speed_mps", "retract_slow_speed_mps",
@@ -383,6 +385,7 @@ class PegInHoleTask(MachineTask):
         self._chord_a = np.zeros(3)
         self._chord_mid = 0.0
         self._chord_free = 0.0  # how far the chord measurement travelled before meeting the wall
+        self._centre_left = 0.0  # upright on the wall: how much of the step onto the hole's axis is left
         self._pivot = np.zeros(3)
         self._release_from = 0.0
         self._setpoint = 0.0
@@ -853,9 +856,10 @@ class PegInHoleTask(MachineTask):
         ref_tilt = self._tilt_angle(self.ref.rotation)
         if ref_tilt <= 1e-4:
             # Upright with the lead side on the wall: step off it by about half the clearance.
-            step = c.wall_clearance_m if c.wall_clearance_m is not None else \
+            # (at centre_speed_mps as the insertion starts: a step in one period jerked the arm sideways
+            # into the rim, 90-100 N spikes)
+            self._centre_left = c.wall_clearance_m if c.wall_clearance_m is not None else \
                 (c.hole_diameter_m - c.peg_diameter_m) / 2
-            self.ref.translation -= self.lead * step
             self._begin_insert(f"upright (measured tilt {tilt:.2f} deg)")
             return False
         # Rotate the reference toward upright about the wall contact (the pivot on the lead side).
@@ -883,6 +887,11 @@ class PegInHoleTask(MachineTask):
             self.t_inserted = obs.t
             self._release_from = c.insert_force_n
             self.inserted()
+            return False
+        if self._centre_left > 0:  # off the wall onto the hole's axis first
+            d = min(self._centre_left, c.centre_speed_mps * self.dt)
+            self.ref.translation -= self.lead * d
+            self._centre_left -= d
             return False
         axis = self.ref.rotation[:, 2]
         m = math.hypot(mx, my) if np.isfinite(mx) and np.isfinite(my) else 0.0

@@ -303,3 +303,37 @@ def test_run_peg_in_hole_records_states_wrench_depth_and_a_plot(capsys):
     assert {"contact", "depth", "fz", "mx", "my", "tip_x", "tilt_x"} <= set(log.column_names)
     assert {"survey", "approach", "slide", "rotate", "insert", "release", "retract"} <= \
         set(log.column("state").to_pylist())
+
+
+def test_upright_on_the_wall_the_peg_steps_onto_the_axis_gradually_before_feeding(cfg):
+    # A step of the radial clearance in one period jerked the arm into the rim (90-100 N): the reference
+    # moves off the wall at centre_speed_mps, and the feed along the axis starts only after it.
+    import pinocchio as pin
+
+    from main import robot_for
+    from tasks.peg import PegInHoleTask
+
+    robot = robot_for(cfg, "peg")
+    pc = PegConfig()
+    dt = cfg.loop.period_s
+    task = PegInHoleTask(pc, robot, np.asarray(cfg.scene.hole_center), cfg.scene.table_height, dt,
+                         np.asarray(cfg.robot.home, float))
+    task.ref = pin.SE3(pin.rpy.rpyToMatrix(np.pi, 0.0, 0.0), np.array([0.45, -0.12, 0.049]))
+    task._tip = task.ref.copy()
+    task.lead = np.array([-1.0, 0.0, 0.0])
+    task._centre_left = (pc.hole_diameter_m - pc.peg_diameter_m) / 2
+    task.depth = 0.001
+    start = task.ref.translation.copy()
+    steps = []
+    for _ in range(200):
+        before = task.ref.translation.copy()
+        task._insert(None, 0.0, 0.0, 0.0)
+        steps.append(task.ref.translation - before)
+        if task._centre_left <= 0:
+            break
+    steps = np.array(steps)
+    assert np.all(np.abs(steps[:, 0]) <= pc.centre_speed_mps * dt + 1e-12)
+    assert np.allclose(steps[:, 1:], 0.0)  # no feed while stepping off the wall
+    assert task.ref.translation[0] - start[0] == pytest.approx(0.0002)  # off the lead wall by the clearance
+    task._insert(None, 0.0, 0.0, 0.0)  # then the feed along the peg's axis
+    assert task.ref.translation[2] < start[2]
