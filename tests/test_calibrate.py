@@ -143,6 +143,8 @@ def test_wipe_runs_with_the_virtual_sensor_in_the_loop(vs, tmp_path, capsys):
     # shipped artefacts are in the README).
     assert s["virtual_vs_sensor_samples"] > 500
     assert s["virtual_vs_sensor_fz_mae_n"] < 5.0 and s["force_mae_n"] < 6.0
+    # The cell's peak force is the F/T sensor's (pressing at 60 N it is well above 60); the task's own is kept
+    assert 60.0 < s["peak_force_n"] < 150.0 and "virtual_peak_force_n" in s
     log = read_log(tmp_path / s["run_dir"]) if not s["run_dir"].startswith("/") else read_log(s["run_dir"])
     assert {"fz", "sensor_fz", "sensor_mx"} <= set(log.column_names)
 
