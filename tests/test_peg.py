@@ -195,20 +195,24 @@ def test_a_face_tilted_beyond_the_limit_fails_by_name(cfg):
     assert task.outcome == "failed" and "fixture face tilted 6.0 deg" in task.reason
 
 
+def _bare_task(cfg, pc: PegConfig | None = None):
+    """A peg task on the default cell, driven by hand (no loop): for its single steps."""
+    from main import robot_for
+    from tasks.peg import PegInHoleTask
+
+    return PegInHoleTask(pc or PegConfig(), robot_for(cfg, "peg"), np.asarray(cfg.scene.hole_center),
+                         cfg.scene.table_height, cfg.loop.period_s, np.asarray(cfg.robot.home, float))
+
+
 def test_a_guarded_descent_that_stalls_on_a_face_cuts_its_lead(cfg):
     # The tip descends at the commanded speed, then stops dead (a stiff face): the reference may lead it
     # by only touch_lead_m from then on (the force on the face stays bounded while the wrench confirms
     # the touch); once the tip moves on again, the full lead is back.
     import pinocchio as pin
 
-    from main import robot_for
-    from tasks.peg import PegInHoleTask
-
-    robot = robot_for(cfg, "peg")
     pc = PegConfig()
     dt = cfg.loop.period_s
-    task = PegInHoleTask(pc, robot, np.asarray(cfg.scene.hole_center), cfg.scene.table_height, dt,
-                         np.asarray(cfg.robot.home, float))
+    task = _bare_task(cfg, pc)
     v = pc.survey_speed_mps
     z = 0.06
 
@@ -235,14 +239,9 @@ def test_a_descent_starting_from_rest_keeps_its_full_lead(cfg):
     # anything: the lead stays max_lead_m so the servo can break it free.
     import pinocchio as pin
 
-    from main import robot_for
-    from tasks.peg import PegInHoleTask
-
-    robot = robot_for(cfg, "peg")
     pc = PegConfig()
     dt = cfg.loop.period_s
-    task = PegInHoleTask(pc, robot, np.asarray(cfg.scene.hole_center), cfg.scene.table_height, dt,
-                         np.asarray(cfg.robot.home, float))
+    task = _bare_task(cfg, pc)
     task.ref = pin.SE3(np.eye(3), np.array([0.45, -0.12, 0.06]))
     for _ in range(15):
         task.t += dt
@@ -310,14 +309,9 @@ def test_upright_on_the_wall_the_peg_steps_onto_the_axis_gradually_before_feedin
     # moves off the wall at centre_speed_mps, and the feed along the axis starts only after it.
     import pinocchio as pin
 
-    from main import robot_for
-    from tasks.peg import PegInHoleTask
-
-    robot = robot_for(cfg, "peg")
     pc = PegConfig()
     dt = cfg.loop.period_s
-    task = PegInHoleTask(pc, robot, np.asarray(cfg.scene.hole_center), cfg.scene.table_height, dt,
-                         np.asarray(cfg.robot.home, float))
+    task = _bare_task(cfg, pc)
     task.ref = pin.SE3(pin.rpy.rpyToMatrix(np.pi, 0.0, 0.0), np.array([0.45, -0.12, 0.049]))
     task._tip = task.ref.copy()
     task.lead = np.array([-1.0, 0.0, 0.0])
