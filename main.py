@@ -309,7 +309,6 @@ def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
         from cell.recorder import new_run_dir
 
         record = new_run_dir(Path(cfg.recording.directory), "bench-peg")
-        (record / "log").rmdir()  # the trials' logs are in trial_NNN/log
         log.info("recording every trial under %s", record)
     return bench_peg(cfg, robot, pcfg, args.trials, args.seed if args.seed is not None else 0,
                      only=args.only, record=record,

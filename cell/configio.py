@@ -155,7 +155,7 @@ def require_len(values: list[Any], n: int, where: str) -> None:
 
 
 def json_default(obj: Any) -> Any:
-    """`json.dumps(default=...)` for numpy scalars and arrays (anything else as its string)."""
+    """`json.dumps(default=...)` for numpy scalars and arrays (anything else, e.g. a Path, as its string)."""
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):

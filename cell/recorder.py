@@ -14,22 +14,24 @@ import os
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import yaml
+
+from cell.configio import json_default
 
 log = logging.getLogger(__name__)
 
 
 def new_run_dir(root: Path, task: str) -> Path:
+    """A new folder `root`/<timestamp>-<task>[-k] (its step log's `log/` is the Recorder's)."""
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     base = Path(root) / f"{stamp}-{task}"
     path, k = base, 1
     while path.exists():
         k += 1
         path = base.with_name(f"{base.name}-{k}")
-    (path / "log").mkdir(parents=True)
+    path.mkdir(parents=True)
     return path
 
 
@@ -85,18 +87,8 @@ class Recorder:
 
     def write_summary(self, summary: dict[str, Any]) -> Path:
         path = self.run_dir / "summary.json"
-        path.write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
+        path.write_text(json.dumps(summary, indent=2, default=json_default) + "\n")
         return path
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
 def read_log(run_dir: Path) -> pa.Table:

@@ -21,7 +21,7 @@ import numpy as np
 import xgboost as xgb
 
 from cell.config import VirtualSensorConfig
-from cell.configio import read_versioned_json
+from cell.configio import json_default, read_versioned_json
 from cell.dynamics.artefact import load_model
 from cell.dynamics.learned import LearnedModel
 from cell.dynamics.physics import urdf_sha256
@@ -88,17 +88,9 @@ def save_calibration(cal: Calibration, path: Path) -> Path:
     doc.update(format=FORMAT, format_version=FORMAT_VERSION, learned=files,
                created=cal.created or datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"))
     tmp = path / ".calibration.json.tmp"
-    tmp.write_text(json.dumps(doc, indent=1, default=_plain))
+    tmp.write_text(json.dumps(doc, indent=1, default=json_default))
     os.replace(tmp, path / "calibration.json")
     return path
-
-
-def _plain(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    return str(obj)
 
 
 def read_calibration_doc(path: Path) -> dict[str, Any]:

@@ -23,6 +23,7 @@ from sim.cell import SimCell
 from sim.drivers import SimArm, SimForceSensor
 from sim.plant import Plant
 from sim.profile import load_profile
+from tasks.base import SETUP_STATES
 from tasks.peg import INSERTION_STATES, PegConfig, PegInHoleTask
 
 log = logging.getLogger(__name__)
@@ -54,22 +55,22 @@ class Trial:
 class _Tap:
     """A force source that remembers its last reading (the ground truth the task never sees)."""
 
-    def __init__(self, source: Any) -> None:
+    def __init__(self, source: Any, task: PegInHoleTask) -> None:
         self.source = source
+        self.task = task
         self.name = source.name
         self.last: Wrench | None = None
-        self.scoring = False  # peak force kept only once the task is past its move to the start and tare
-        self.state = ""  # the task's state, for the peak's
-        self.peak_force = 0.0
-        self.peak_state = ""
+        self.peak_force = 0.0  # largest |F| read once the task is past its setup states
+        self.peak_state = ""  # the task's state then
 
     def read(self, state: ArmState) -> Wrench:
         # The peak is taken here, not in the task's step: a reading that trips the safety stop never
         # reaches the task, and it is the one that matters.
         self.last = self.source.read(state)
         f = float(np.linalg.norm(self.last.force))
-        if self.scoring and np.isfinite(f) and f > self.peak_force:
-            self.peak_force, self.peak_state = f, self.state
+        now = self.task.state_name
+        if now not in SETUP_STATES and np.isfinite(f) and f > self.peak_force:
+            self.peak_force, self.peak_state = f, now
         return self.last
 
     def rebias(self) -> None:
@@ -79,10 +80,9 @@ class _Tap:
 class _ScoredTask:
     """Wraps the task: per step, the wrench it used, the measured one, and the plant's true depth."""
 
-    def __init__(self, task: PegInHoleTask, truth: _Tap | None, meter: _Tap, plant: Plant) -> None:
+    def __init__(self, task: PegInHoleTask, truth: _Tap | None, plant: Plant) -> None:
         self.task = task
         self.truth = truth  # the F/T sensor beside another force source (errors are scored), or None
-        self.meter = meter  # the F/T sensor's readings, wherever it is: the peak force
         self.plant = plant
         self.name = task.name
         self.errors: list[np.ndarray] = []
@@ -113,10 +113,7 @@ class _ScoredTask:
                                                 v.force[2] - measured.force[2]])))
         tip = self.plant.tool_pose()[0]
         self.true_depth = max(self.true_depth, float((self._mouth - tip) @ self._axis))
-        cmd = self.task.step(obs)
-        self.meter.state = self.task.state_name
-        self.meter.scoring = self.task.state_name not in ("move_to_start", "tare")
-        return cmd
+        return self.task.step(obs)
 
 
 def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.ndarray, tilt: np.ndarray,
@@ -136,13 +133,13 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
         cell = holder.open()
         if wrap is not None:
             cell = wrap(cell)
-        truth = _Tap(cell.ground_truth) if cell.ground_truth is not None else None
-        force = cell.force if truth is not None else _Tap(cell.force)  # the F/T sensor in the loop: tap it
-        meter = truth if truth is not None else force
-        assert isinstance(meter, _Tap)
         task = PegInHoleTask(pcfg, robot, nominal, cfg.scene.table_height, cfg.loop.period_s,
                              np.asarray(cfg.robot.home, float))
-        scored = _ScoredTask(task, truth, meter, plant)
+        # The F/T sensor's readings, wherever it is (beside the virtual sensor, or in the loop): the peak force
+        meter = _Tap(cell.ground_truth if cell.ground_truth is not None else cell.force, task)
+        truth = meter if cell.ground_truth is not None else None
+        force = cell.force if truth is not None else meter
+        scored = _ScoredTask(task, truth, plant)
         recorder = Recorder(record_dir, cfg.recording.chunk_rows) if record_dir is not None else None
         loop = ControlLoop(cell.arm, force, scored, SafetyMonitor(cfg.safety, robot, cfg.loop.period_s),
                            cell.ticker, recorder, cfg.loop.period_s, pcfg.max_duration_s,

@@ -10,6 +10,10 @@ from transitions import Machine
 
 log = logging.getLogger(__name__)
 
+# A task's states before it can touch anything (moving to its start, re-zeroing): scores such as the peak
+# contact force leave them out.
+SETUP_STATES = ("move_to_start", "tare")
+
 
 class MachineTask:
     """A task whose states are an Enum with DONE and FAILED members; `fail` is allowed from anywhere.
@@ -21,6 +25,7 @@ class MachineTask:
 
     name = "task"
     States: type[enum.Enum]
+    state_log_level = logging.INFO  # state changes are logged at this level (long data runs: DEBUG)
 
     def __init__(self, initial: enum.Enum, transitions: list[tuple[str, Any, Any]]) -> None:
         self.state: Any = initial
@@ -54,4 +59,4 @@ class MachineTask:
 
     def _entered(self) -> None:
         self.t_state = 0.0
-        log.info("%s: %s", self.name, self.state_name)
+        log.log(self.state_log_level, "%s: %s", self.name, self.state_name)

@@ -56,6 +56,7 @@ from cell.virtual_sensor import (
 from cell.wrench_map import AXES, LEARNED_INPUTS, JacobianMap, LearnedMap, fit_learned_axes
 from drivers.errors import CellError, ConfigError, DataError
 from drivers.interfaces import ArmState
+from tasks.base import MachineTask
 
 log = logging.getLogger(__name__)
 
@@ -108,13 +109,20 @@ class Phase(enum.Enum):
     FAILED = "failed"
 
 
-class PostureTask:
+class PostureTask(MachineTask):
     """One posture: move there, rest (free space; re-zero the sensor at the end), loads, release."""
 
     name = "calibrate"
+    state_log_level = logging.DEBUG  # nine postures of four states each: the progress bar says enough
 
     def __init__(self, q_target: np.ndarray, index: int, robot: RobotModel, dt: float, cal: CalibrationConfig,
                  applier: LoadApplier, load_s: float) -> None:
+        super().__init__(Phase.MOVE, [
+            ("moved", Phase.MOVE, Phase.SETTLE),
+            ("settled", Phase.SETTLE, Phase.LOAD),
+            ("unloaded", Phase.LOAD, Phase.RELEASE),
+            ("released", Phase.RELEASE, Phase.DONE),
+        ])
         self.q_target = q_target
         self.index = index
         self.dt = dt
@@ -122,68 +130,51 @@ class PostureTask:
         self.applier = applier
         self.load_s = load_s
         self.speed = robot.limits.velocity * cal.move_speed_fraction
-        self.phase = Phase.MOVE
         self.move: JointMove | None = None
-        self.t = 0.0
-        self.reason = ""
-
-    @property
-    def done(self) -> bool:
-        return self.phase in (Phase.DONE, Phase.FAILED)
-
-    @property
-    def state_name(self) -> str:
-        return self.phase.value
 
     def abort(self, reason: str) -> None:
         if not self.done:
             self.applier.release()
-            self.reason = reason
-            self.phase = Phase.FAILED
-
-    def _next(self, phase: Phase) -> None:
-        self.phase = phase
-        self.t = 0.0
+        super().abort(reason)
 
     def step(self, obs: Observation) -> Command:
         load, steady, rebias = -1, 0.0, False
-        phase_code = PHASES.get(self.phase.value, -1)
+        phase_code = PHASES.get(self.state.value, -1)
         q = self.q_target
-        if self.phase is Phase.MOVE:
+        if self.state is Phase.MOVE:
             if self.move is None:
                 self.move = JointMove(obs.q_cmd, self.q_target, self.speed)
-            q = self.move.at(self.t + self.dt)
-            if self.t + self.dt >= self.move.duration:
-                self._next(Phase.SETTLE)
+            q = self.move.at(self.t_state + self.dt)
+            if self.t_state + self.dt >= self.move.duration:
+                self.moved()
             else:
-                self.t += self.dt
-        elif self.phase is Phase.SETTLE:
-            self.t += self.dt
-            if self.t >= self.cal.settle_s:
+                self.t_state += self.dt
+        elif self.state is Phase.SETTLE:
+            self.t_state += self.dt
+            if self.t_state >= self.cal.settle_s:
                 rebias = True  # free space, at rest: zero the F/T sensor (and, in replay, the observers)
-                self._next(Phase.LOAD)
+                self.settled()
                 if not self.applier.scripted:
                     log.warning("posture %d: PUSH THE TOOL NOW, varying, for %.0f s", self.index + 1, self.load_s)
-        elif self.phase is Phase.LOAD:
-            load, is_steady = self.applier.update(self.t)
+        elif self.state is Phase.LOAD:
+            load, is_steady = self.applier.update(self.t_state)
             steady = float(is_steady)
-            self.t += self.dt
-            if self.t >= self.load_s:
+            self.t_state += self.dt
+            if self.t_state >= self.load_s:
                 self.applier.release()
-                self._next(Phase.RELEASE)
+                self.unloaded()
                 if not self.applier.scripted:
                     log.warning("posture %d: let go of the tool", self.index + 1)
-        elif self.phase is Phase.RELEASE:
-            self.t += self.dt
-            if self.t >= 0.4:
-                self._next(Phase.DONE)
+        elif self.state is Phase.RELEASE:
+            self.t_state += self.dt
+            if self.t_state >= 0.4:
+                self.released()
         return Command(q=np.asarray(q, float), rebias_force=rebias,
                        log={"phase": float(phase_code), "posture": float(self.index), "load": float(load),
                             "steady": steady, "rebias": float(rebias)})
 
     def summary(self) -> dict[str, Any]:
-        outcome = "done" if self.phase is Phase.DONE else ("failed" if self.phase is Phase.FAILED else "running")
-        return {"task": self.name, "outcome": outcome, "reason": self.reason, "posture": self.index}
+        return {"task": self.name, "outcome": self.outcome, "reason": self.reason, "posture": self.index}
 
 
 def posture_targets(robot: RobotModel, cal: CalibrationConfig, q_home: np.ndarray) -> list[np.ndarray]:

@@ -13,6 +13,7 @@ from cell.excitation import Plan
 from cell.loop import Command, Observation
 from cell.robot import RobotModel
 from cell.trajectory import JointMove
+from tasks.base import MachineTask
 
 log = logging.getLogger(__name__)
 
@@ -25,11 +26,12 @@ class S(enum.Enum):
     FAILED = "failed"
 
 
-class PlaybackTask:
+class PlaybackTask(MachineTask):
     """Plays a `Plan` sample by sample; every logged row carries the `traj` and `segment` it belongs to
     (-1 while moving to the start and settling), so the step log is a dataset as it is."""
 
     name = "collect"
+    state_log_level = logging.DEBUG
 
     def __init__(
         self,
@@ -42,6 +44,11 @@ class PlaybackTask:
     ) -> None:
         if abs(plan.dt - dt) > 1e-12:
             raise ValueError(f"plan sampled at {plan.dt} s but the loop runs at {dt} s")
+        super().__init__(S.MOVE_TO_START, [
+            ("arrived", S.MOVE_TO_START, S.PLAY),
+            ("played_all", S.PLAY, S.SETTLE),
+            ("settled", S.SETTLE, S.DONE),
+        ])
         self.plan = plan
         self.robot = robot
         self.dt = dt
@@ -51,42 +58,25 @@ class PlaybackTask:
         self.q = np.vstack([s.q for s in plan.segments])
         self.traj = np.concatenate([np.full(len(s.q), s.traj, float) for s in plan.segments])
         self.segment = np.concatenate([np.full(len(s.q), s.segment, float) for s in plan.segments])
-        self.state = S.MOVE_TO_START
         self.move: JointMove | None = None
         self.k = 0
-        self._t_state = 0.0
-        self.reason = ""
         self.played = 0
-
-    @property
-    def done(self) -> bool:
-        return self.state in (S.DONE, S.FAILED)
-
-    @property
-    def state_name(self) -> str:
-        return self.state.value
 
     def abort(self, reason: str) -> None:
         if not self.done:
-            self.reason = reason
-            self.state = S.FAILED
             log.warning("collect: %s after %d of %d samples", reason, self.played, len(self.q))
-
-    def _enter(self, state: S) -> None:
-        self.state = state
-        self._t_state = 0.0
-        log.debug("collect: %s", state.value)
+        super().abort(reason)
 
     def step(self, obs: Observation) -> Command:
         label = (-1.0, -1.0)
         if self.state is S.MOVE_TO_START:
             if self.move is None:
                 self.move = JointMove(obs.q_cmd, self.q[0], self.speed)
-            q = self.move.at(self._t_state + self.dt)
-            if self._t_state + self.dt >= self.move.duration:
-                self._enter(S.PLAY)
+            q = self.move.at(self.t_state + self.dt)
+            if self.t_state + self.dt >= self.move.duration:
+                self.arrived()
             else:
-                self._t_state += self.dt
+                self.t_state += self.dt
         elif self.state is S.PLAY:
             q = self.q[self.k]
             label = (float(self.traj[self.k]), float(self.segment[self.k]))
@@ -95,20 +85,19 @@ class PlaybackTask:
             if self.progress is not None:
                 self.progress(1)
             if self.k >= len(self.q):
-                self._enter(S.SETTLE)
+                self.played_all()
         elif self.state is S.SETTLE:
             q = self.q[-1]
-            self._t_state += self.dt
-            if self._t_state >= self.settle_cycles * self.dt:
-                self._enter(S.DONE)
+            self.t_state += self.dt
+            if self.t_state >= self.settle_cycles * self.dt:
+                self.settled()
         else:
             q = obs.q_cmd
         return Command(q=np.asarray(q, float), log={"traj": label[0], "segment": label[1]})
 
     def summary(self) -> dict[str, Any]:
-        outcome = "done" if self.state is S.DONE else ("failed" if self.state is S.FAILED else "running")
         return {
-            "task": self.name, "outcome": outcome, "reason": self.reason, "final_state": self.state.value,
+            "task": self.name, "outcome": self.outcome, "reason": self.reason, "final_state": self.state.value,
             "plan_samples": int(len(self.q)), "samples_played": int(self.played),
             "plan_duration_s": float(len(self.q) * self.dt),
         }

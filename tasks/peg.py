@@ -859,9 +859,9 @@ class PegInHoleTask(MachineTask):
         tilt = math.degrees(float(np.linalg.norm(self.tilt)))
         ref_tilt = self._tilt_angle(self.ref.rotation)
         if ref_tilt <= 1e-4:
-            # Upright with the lead side on the wall: step off it by about half the clearance.
-            # (at centre_speed_mps as the insertion starts: a step in one period jerked the arm sideways
-            # into the rim, 90-100 N spikes)
+            # Upright with the lead side on the wall: step off it onto the hole's axis (wall_clearance_m),
+            # at centre_speed_mps as the insertion starts (a step in one period jerked the arm sideways into
+            # the rim, 90-100 N spikes).
             self._centre_left = c.wall_clearance_m if c.wall_clearance_m is not None else \
                 (c.hole_diameter_m - c.peg_diameter_m) / 2
             self._begin_insert(f"upright (measured tilt {tilt:.2f} deg)")

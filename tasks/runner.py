@@ -16,6 +16,7 @@ from cell.report import plot_force_run
 from cell.robot import RobotModel
 from cell.safety import SafetyMonitor
 from drivers.interfaces import ArmState, Wrench
+from tasks.base import SETUP_STATES
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +83,7 @@ class GroundTruthTap:
         if "peak_force_n" in task_summary:
             # Likewise the peak: the task's is what its force source read, the cell's what the sensor felt
             # (from the first contact on, as the peg bench scores it).
-            working = ~np.isin(np.asarray(self.states), ["move_to_start", "tare"])
+            working = ~np.isin(np.asarray(self.states), SETUP_STATES)
             if working.any():
                 out.update(virtual_peak_force_n=task_summary["peak_force_n"],
                            peak_force_n=float(np.max(np.linalg.norm(meas[working, :3], axis=1))))

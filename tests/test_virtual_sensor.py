@@ -238,8 +238,10 @@ def test_each_tool_gets_its_configured_observer():
     from cell.configio import load_dataclass
     from drivers.errors import ConfigError
 
+    # The shipped choice: the momentum observer for the wipe (and calibrate's default report), the gated
+    # Kalman filter for the peg.
     vs = load_config().virtual_sensor
-    assert vs.observer_for("peg") == vs.observer_by_tool.get("peg", vs.observer)
+    assert (vs.observer_for("wipe"), vs.observer_for("peg")) == ("momentum", "kalman")
     one = load_dataclass(VirtualSensorConfig, {"observer": "momentum", "observer_by_tool": {"peg": "kalman"}}, "vs")
     assert (one.observer_for("wipe"), one.observer_for("peg")) == ("momentum", "kalman")
     import pytest
