@@ -39,7 +39,8 @@ def build_task(name: str, cfg: CellConfig, robot: RobotModel, force_source: str 
             raise ConfigError(f"{cfg.source}: tasks.wipe: {exc}") from None
         return task, wcfg.max_duration_s
     if name == "peg-in-hole":
-        from tasks.peg import PegInHoleTask, load_peg_config
+        from tasks.peg import PegInHoleTask
+        from tasks.peg_config import load_peg_config
 
         pcfg = load_peg_config(cfg.tasks.get("peg"), f"{cfg.source}: tasks.peg", force_source)
         try:
@@ -287,7 +288,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
     """Randomised insertions on the simulated cell with the force source `run` would use for the peg."""
     from sim.bench_peg import bench_peg
-    from tasks.peg import load_peg_config
+    from tasks.peg_config import load_peg_config
 
     cfg = load_config(args.config)
     if args.plant:

@@ -48,6 +48,12 @@ _BITS_PER_BYTE = 10
 # pyserial reads block at most this long, so deadlines are kept to within a slice and a stream
 # reader notices a stop request promptly without changing the port timeout per call (a tcsetattr).
 _READ_SLICE_S = 0.005
+# Writes are a few bytes, which leave at once unless the adapter is wedged, so their bound is not the
+# reply timeout: pyserial checks its write deadline *after* the bytes went out, so with a 5 ms bound
+# a thread descheduled for 5 ms between the call and that check raised a write timeout for a command
+# that was sent (seen on the emulated cell under load, a lost link at connect).  A wedged adapter is
+# still noticed, this late at most.
+_WRITE_TIMEOUT_FLOOR_S = 0.2
 # After `E` the sensor may still have records in flight (and a USB adapter its buffer): let them land.
 _DRAIN_S = 0.02
 # `O` must be sent three times, about 1 ms apart.
@@ -426,7 +432,7 @@ class WacohSensor(ForceSensor):
                 rtscts=False,
                 dsrdtr=False,
                 timeout=min(cfg.timeout_s, _READ_SLICE_S),
-                write_timeout=cfg.timeout_s,
+                write_timeout=max(cfg.timeout_s, _WRITE_TIMEOUT_FLOOR_S),
             )
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LinkLostError(f"WACOH sensor: cannot open {cfg.port}: {exc}") from None

@@ -24,7 +24,8 @@ from sim.drivers import SimArm, SimForceSensor
 from sim.plant import Plant
 from sim.profile import load_profile
 from tasks.base import SETUP_STATES
-from tasks.peg import INSERTION_STATES, PegConfig, PegInHoleTask
+from tasks.peg import INSERTION_STATES, PegInHoleTask
+from tasks.peg_config import PegConfig
 
 log = logging.getLogger(__name__)
 

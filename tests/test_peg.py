@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from drivers.errors import ConfigError
-from tasks.peg import Contact, PegConfig, classify, load_peg_config, rim_points, wrench_errors
+from tasks.peg import Contact, classify, rim_points, wrench_errors
+from tasks.peg_config import PegConfig, load_peg_config
 
 
 @pytest.fixture

@@ -394,6 +394,36 @@ def test_dropped_replies_give_nan_then_link_lost(
     assert sensor.read().valid  # the link recovers without reconnecting
 
 
+def test_a_write_delayed_past_the_reply_timeout_is_not_a_lost_link(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """pyserial checks its write deadline after the bytes went out: a thread descheduled longer than
+    the 5 ms reply timeout around a write must not turn a sent command into a lost link."""
+    import types
+
+    import serial.serialposix as posix
+
+    stalls = []
+
+    def descheduled_write(fd: int, data: bytes) -> int:
+        n = os.write(fd, data)
+        stalls.append(n)
+        time.sleep(0.02)  # the OS runs something else for 20 ms right after the bytes left
+        return n
+
+    emulator = make_emulator(Source(), offset_lsb=np.zeros(6), noise=0.0)
+    # Only the driver's port sees the stall (the emulator writes with the real os.write).
+    driver_os = types.SimpleNamespace(**{k: getattr(os, k) for k in dir(os) if not k.startswith("__")})
+    driver_os.write = descheduled_write
+    monkeypatch.setattr(posix, "os", driver_os)
+    sensor = connect(sensors, emulator, timeout_s=0.005)
+    assert sensor.sensitivities_source == "sensor"
+    for _ in range(5):
+        assert sensor.read().valid  # the reply came while the thread was away
+    assert len(stalls) >= 6, "the stall was not exercised"
+    assert sensor.connected
+
+
 @pytest.mark.parametrize("mode", ["poll", "stream"])
 def test_closed_emulator_raises_link_lost_instead_of_hanging(
     make_emulator: EmulatorFactory, sensors: list[WacohSensor], mode: str
