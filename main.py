@@ -237,7 +237,23 @@ def run_prepare(cfg: CellConfig, tool: str, kind: str, seed: int | None, samples
         make_plant(cfg, seed, "free", tool)  # a bad plant profile fails here, before any planning
     opener, applier = calibration_cells(cfg, kind, tool, robot, seed)
     return prepare(cfg, tool, robot, opener, opener, applier, samples=samples, force=force,
-                   cell_info=cell_identity(cfg, kind, seed))
+                   cell_info=cell_identity(cfg, kind, seed), working_posture=working_posture(cfg, tool, robot))
+
+
+SWEEP_LIFT_M = 0.1  # the sweeps' centre: the task's start lifted this far (the collection keeps off the table)
+
+
+def working_posture(cfg: CellConfig, tool: str, robot: RobotModel) -> np.ndarray:
+    """Where `prepare` sweeps slowly: the joints of the tool's task start, with the tool lifted
+    `SWEEP_LIFT_M` (the task's regime of postures and speeds, clear of the work surface)."""
+    task, _ = build_task(next(t for t, k in TASK_TOOLS.items() if k == tool), cfg, robot)
+    q0 = np.asarray(task.q_start, float)
+    pose = robot.tcp_pose(q0)
+    pose.translation = pose.translation + np.array([0.0, 0.0, SWEEP_LIFT_M])
+    q, ok = robot.ik(pose, q0)
+    if not ok:
+        raise ConfigError(f"the {tool} tool's working posture lifted {SWEEP_LIFT_M} m is not reachable")
+    return np.asarray(q, float)
 
 
 def cmd_prepare(args: argparse.Namespace) -> int:

@@ -20,6 +20,7 @@ friction's low-speed regime, which the fast families only cross at their turning
 from __future__ import annotations
 
 import enum
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -392,6 +393,7 @@ def calibration_matches(cfg: CellConfig, robot: RobotModel, tool: str, model_dir
 
 
 PREPARE_SLOW_SHARE = 0.25
+PREPARE_SWEEP_SHARE = 0.4  # of `samples`: slow sweeps around the tool's working posture (when given)
 
 
 def prepare(
@@ -405,8 +407,12 @@ def prepare(
     force: bool = False,
     seed: int = 0,
     cell_info: dict[str, Any] | None = None,
+    working_posture: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Collect (with `tool` mounted) -> train the causal H1 -> calibrate, into the default artefact paths.
+
+    `working_posture`: the joints where the tool's task starts; the collection then adds slow sweeps
+    around it (`PREPARE_SWEEP_SHARE` x `samples`).
 
     CLI: main.py prepare [--tool wipe|peg] [--cell sim] [--samples 40000] [--force] [--json]
     """
@@ -417,10 +423,15 @@ def prepare(
     data_dir, model_dir, cal_dir = vs.path("data", tool), vs.path("model", tool), vs.path("calibration", tool)
     manifest = data_dir / "dataset.yaml"
     steps: dict[str, Any] = {}
-    if force or not manifest.exists():
+    stale = manifest.exists() and working_posture is not None and not _has_sweeps(data_dir)
+    if stale:
+        log.warning("prepare %s: %s was collected without the slow sweeps around the working posture: "
+                    "collecting it again", tool, data_dir)
+    if force or stale or not manifest.exists():
         log.info("prepare %s: collecting %d samples with the %s tool into %s", tool, samples, tool, data_dir)
+        sweeps = PREPARE_SWEEP_SHARE if working_posture is not None else 0.0
         res = lab.collect(cfg, collect_opener, data_dir, samples=samples, test_trajectories=0, seed=seed,
-                          slow_share=PREPARE_SLOW_SHARE)
+                          slow_share=PREPARE_SLOW_SHARE, sweep_share=sweeps, sweep_centre=working_posture)
         steps["collect"] = {"done": True, "train_samples": res["train_samples"], "wall_s": round(res["wall_s"], 1)}
     else:
         steps["collect"] = {"done": False, "reason": f"{manifest} exists"}
@@ -452,6 +463,15 @@ def prepare(
         steps["calibrate"] = {"done": False, "reason": f"{cal_dir} matches the robot, the tool and the model"}
     return {"tool": tool, "data": str(data_dir), "model": str(model_dir), "calibration": str(cal_dir),
             "steps": steps, "wall_s": round(time.perf_counter() - t0, 1)}
+
+
+def _has_sweeps(data_dir: Path) -> bool:
+    """Whether the dataset's collection included the slow sweeps (its collect.json says so)."""
+    try:
+        info = json.loads((data_dir / "collect.json").read_text())["plans"]["train"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    return isinstance(info, dict) and "sweep" in info
 
 
 def artefacts_missing(cfg: CellConfig, robot: RobotModel, tool: str) -> str:

@@ -47,6 +47,7 @@ from cell.excitation import (
     paper_chain,
     random_moves,
     read_excitation_config,
+    sweep_excitation,
     transfer,
 )
 from cell.loop import ControlLoop
@@ -81,6 +82,8 @@ def collect(
     excitation: str | None = None,
     seed: int = 0,
     slow_share: float = 0.0,
+    sweep_share: float = 0.0,
+    sweep_centre: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Run training and test trajectories on a cell through the control loop (safety, recording) and
     write a dataset: `<out>/train.parquet`, `<out>/test.parquet`, `<out>/dataset.yaml`, `<out>/collect.json`.
@@ -103,7 +106,8 @@ def collect(
     ex = dataclasses.replace(ex, seed=ex.seed + seed)
     dt = cfg.loop.period_s
     t0 = time.perf_counter()
-    train_plan = training_plan(robot, cfg, ex, dt, samples, family, fourier_share, slow_share)
+    train_plan = training_plan(robot, cfg, ex, dt, samples, family, fourier_share, slow_share, sweep_share,
+                               sweep_centre)
     plans: list[tuple[str, Plan]] = [("train", train_plan)]
     if test_trajectories > 0:
         test_plan = random_moves(robot, cfg, ex, dt, test_trajectories, test_moves, list(ex.speeds),
@@ -155,15 +159,30 @@ SLOW_SPEED_FRACTION = 0.02  # slow excitation: joint speeds up to 2 % of the lim
 
 
 def training_plan(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: float, samples: int,
-                  family: str, fourier_share: float = 0.7, slow_share: float = 0.0) -> Plan:
+                  family: str, fourier_share: float = 0.7, slow_share: float = 0.0, sweep_share: float = 0.0,
+                  sweep_centre: np.ndarray | None = None) -> Plan:
     """The training motion.  `slow_share` > 0 (what `prepare` collects) adds about `slow_share * samples`
     samples of slow, small-amplitude Fourier excitation around random centres to the family's
     `samples`: the joint speeds of careful task motion (0.005-0.05 rad/s), where the friction is in
-    its Stribeck regime and the fast families only pass through at their turning points."""
+    its Stribeck regime and the fast families only pass through at their turning points.
+    `sweep_share` > 0 adds about `sweep_share * samples` samples of slow constant-speed sweeps around
+    `sweep_centre`, the tool's working posture (`cell.excitation.sweep_excitation`)."""
     if not 0 < fourier_share < 1:
         raise ConfigError(f"--fourier-share {fourier_share}: must lie in (0, 1)")
     if not 0 <= slow_share < 1:
         raise ConfigError(f"slow_share {slow_share}: must lie in [0, 1)")
+    if sweep_share > 0:
+        if sweep_centre is None:
+            raise ConfigError("sweep_share > 0 needs the working posture to sweep around")
+        base = training_plan(robot, cfg, ex, dt, samples, family, fourier_share, slow_share)
+        try:
+            sweeps = sweep_excitation(robot, cfg, ex, dt, int(samples * sweep_share), sweep_centre,
+                                      start=base.segments[-1].q[-1], traj_base=700,
+                                      segment_base=max(s.segment for s in base.segments) + 1)
+        except ValueError as exc:
+            raise ConfigError(f"slow sweeps around the working posture: {exc}") from None
+        return Plan(base.segments + sweeps.segments, dt, {**base.info, "sweep": sweeps.info,
+                                                          "sweep_share": sweep_share})
     if slow_share > 0:
         slow_n = int(samples * slow_share)
         fast = training_plan(robot, cfg, ex, dt, samples, family, fourier_share)

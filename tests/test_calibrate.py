@@ -65,6 +65,20 @@ def test_prepare_skips_what_is_present_and_matching(vs):
     assert not any(step["done"] for step in out["steps"].values()), out["steps"]
 
 
+def test_prepare_collects_again_a_dataset_without_the_working_posture_sweeps(vs):
+    cfg, robot = vs["cfg"], vs["robot"]
+
+    class Opened(Exception):
+        pass
+
+    def opener():
+        raise Opened
+
+    # The fixture's dataset was collected without a working posture: with one, prepare collects anew.
+    with pytest.raises(Opened):
+        prepare(cfg, "wipe", robot, opener, opener, lambda h: None, working_posture=np.asarray(cfg.robot.home))
+
+
 def _copy_calibration(vs, tmp_path):
     src = vs["cfg"].virtual_sensor.path("calibration", "wipe")
     dst = tmp_path / "cal"

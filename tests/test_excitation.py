@@ -23,6 +23,7 @@ from cell.excitation import (
     paper_chain,
     path_clear,
     random_moves,
+    sweep_excitation,
     transfer,
 )
 from cell.loop import Observation
@@ -125,6 +126,33 @@ def test_fourier_excitation_respects_limits_and_starts_at_rest(robot, cfg):
     assert check_plan(plan, robot, cfg, SMALL) == []
 
 
+def test_sweeps_hold_slow_constant_speeds_around_the_working_posture(robot, cfg):
+    centre = np.array(cfg.robot.home, float) + np.array([0.3, 0.2, -0.3, 0.1, 0.0, 0.2])
+    plan = sweep_excitation(robot, cfg, SMALL, DT, 6000, centre)
+    sweeps = [s for s in plan.segments if s.kind == "sweep" and s.traj >= 0]
+    assert plan.samples >= 6000 and plan.info["blocks"] >= 2
+    q = np.vstack([s.q for s in plan.segments])
+    np.testing.assert_allclose(q[0], cfg.robot.home, atol=0.05)  # it starts with the way from home
+    body = np.vstack([s.q for s in sweeps[1:]])  # after the first block's transfer
+    dq = np.diff(body, axis=0) / DT
+    # Every joint stays near the centre (turns back past half the box) and never outruns the range.
+    assert np.all(np.abs(body - centre).max(axis=0) < 0.2)
+    speed = np.abs(dq)
+    assert speed.max() <= 0.06 * 1.001
+    # Long stretches at constant speed, most of them slow: the friction's steady low-speed branch.
+    steady = np.all(np.abs(np.diff(dq, axis=0)) < 1e-9, axis=1)
+    assert steady.mean() > 0.6
+    assert np.median(speed[1:][steady]) < 0.03 and np.mean(speed[1:][steady] < 0.01) > 0.2
+    assert check_plan(plan, robot, cfg, SMALL) == []
+
+
+def test_sweeps_refuse_a_centre_in_collision(robot, cfg):
+    low = np.array(cfg.robot.home, float)
+    low[1] = np.radians(100.0)  # far down: the arm in the table
+    with pytest.raises(ValueError, match="sweep centre"):
+        sweep_excitation(robot, cfg, SMALL, DT, 1000, low)
+
+
 def test_random_test_moves_are_another_family(robot, cfg):
     plan = random_moves(robot, cfg, SMALL, DT, trajectories=2, moves=2, speeds=[0.5], repeats=2, seed=4)
     assert sorted({s.traj for s in plan.segments}) == [0, 1, 2, 3]
@@ -170,3 +198,31 @@ def test_playback_task_moves_to_start_plays_every_sample_and_labels_rows(robot, 
     task2 = PlaybackTask(plan, robot, DT)
     task2.abort("test")
     assert task2.summary()["outcome"] == "failed" and task2.summary()["reason"] == "test"
+
+
+def test_training_plan_adds_sweeps_around_the_given_posture(robot, cfg):
+    from tasks.lab import training_plan
+
+    centre = np.array(cfg.robot.home, float) + np.array([0.3, 0.2, -0.3, 0.1, 0.0, 0.2])
+    plan = training_plan(robot, cfg, SMALL, DT, 3000, "fourier", sweep_share=0.5, sweep_centre=centre)
+    sweeps = [s for s in plan.segments if s.kind == "sweep"]
+    assert sum(len(s.q) for s in sweeps) >= 1500 and plan.info["sweep"]["centre"] == np.round(centre, 4).tolist()
+    q = np.vstack([s.q for s in plan.segments])
+    assert np.max(np.abs(np.diff(q, axis=0))) < 0.05  # one continuous motion: the sweeps follow on
+    assert check_plan(plan, robot, cfg, SMALL) == []
+    with pytest.raises(ConfigError, match="working posture"):
+        training_plan(robot, cfg, SMALL, DT, 3000, "fourier", sweep_share=0.5)
+
+
+@pytest.mark.parametrize("tool", ["wipe", "peg"])
+def test_each_tools_working_posture_is_free_and_above_its_task_start(cfg, tool):
+    from main import SWEEP_LIFT_M, TASK_TOOLS, build_task, robot_for, working_posture
+    from tasks.lab import lab_robot
+
+    robot = robot_for(cfg, tool)
+    q = working_posture(cfg, tool, robot)
+    task, _ = build_task(next(t for t, k in TASK_TOOLS.items() if k == tool), cfg, robot)
+    lift = robot.tcp_pose(q).translation - robot.tcp_pose(task.q_start).translation
+    np.testing.assert_allclose(lift, [0.0, 0.0, SWEEP_LIFT_M], atol=1e-3)
+    ex = ExcitationConfig()
+    assert CollisionChecker(lab_robot(cfg), cfg, ex).free(q) and Workspace(lab_robot(cfg), cfg, ex).inside(q)
