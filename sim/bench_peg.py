@@ -110,8 +110,10 @@ class _ScoredTask:
         measured = self.truth.last if self.truth is not None and self.truth.last is not None else obs.wrench
         if self.truth is not None and self.task.state_name in INSERTION_STATES:
             v = obs.wrench
-            self.errors.append(np.abs(np.array([v.torque[0] - measured.torque[0], v.torque[1] - measured.torque[1],
-                                                v.force[2] - measured.force[2]])))
+            err = np.abs(np.array([v.torque[0] - measured.torque[0], v.torque[1] - measured.torque[1],
+                                   v.force[2] - measured.force[2]]))
+            if np.all(np.isfinite(err)):  # a timed-out reading is no sample
+                self.errors.append(err)
         tip = self.plant.tool_pose()[0]
         self.true_depth = max(self.true_depth, float((self._mouth - tip) @ self._axis))
         return self.task.step(obs)

@@ -61,6 +61,8 @@ class GroundTruthTap:
             rows = np.isin(np.asarray(self.states), list(regulated))
         else:
             rows = np.linalg.norm(meas[:, :3], axis=1) > CONTACT_N
+        # A missing reading (NaN: a timed-out read of either source) is no sample.
+        rows &= np.all(np.isfinite(meas), axis=1) & np.all(np.isfinite(est), axis=1)
         if not rows.any():
             return {"virtual_vs_sensor_samples": 0}
         err = est[rows] - meas[rows]
@@ -83,7 +85,7 @@ class GroundTruthTap:
         if "peak_force_n" in task_summary:
             # Likewise the peak: the task's is what its force source read, the cell's what the sensor felt
             # (from the first contact on, as the peg bench scores it).
-            working = ~np.isin(np.asarray(self.states), SETUP_STATES)
+            working = ~np.isin(np.asarray(self.states), SETUP_STATES) & np.all(np.isfinite(meas[:, :3]), axis=1)
             if working.any():
                 out.update(virtual_peak_force_n=task_summary["peak_force_n"],
                            peak_force_n=float(np.max(np.linalg.norm(meas[working, :3], axis=1))))

@@ -112,6 +112,7 @@ class WipeTask(MachineTask):
         self._fz0 = 0.0
         self.errors: list[float] = []
         self.wipe_forces: list[float] = []
+        self.missing_samples = 0  # wiping cycles with no valid force reading
         self.peak_force = 0.0
 
     def step(self, obs: Observation) -> Command:
@@ -169,7 +170,8 @@ class WipeTask(MachineTask):
     def _settle(self, obs: Observation, fz: float) -> tuple[np.ndarray, float, bool]:
         sp = self.cfg.force_setpoint_n
         self._regulate(fz, sp)
-        self._t_in_band = self._t_in_band + self.dt if abs(fz - sp) < self.cfg.settle_tolerance_n else 0.0
+        if np.isfinite(fz):  # a missing reading neither settles nor unsettles the force
+            self._t_in_band = self._t_in_band + self.dt if abs(fz - sp) < self.cfg.settle_tolerance_n else 0.0
         if self._t_in_band >= self.cfg.settle_time_s:
             self.settled()
         elif self.t_state > self.cfg.max_settle_s:
@@ -178,8 +180,11 @@ class WipeTask(MachineTask):
 
     def _wipe(self, obs: Observation, fz: float) -> tuple[np.ndarray, float, bool]:
         sp = self.cfg.force_setpoint_n
-        self.errors.append(fz - sp)
-        self.wipe_forces.append(fz)
+        if np.isfinite(fz):
+            self.errors.append(fz - sp)
+            self.wipe_forces.append(fz)
+        else:  # a missing reading (the force source timed out) is no error sample
+            self.missing_samples += 1
         xy, finished = self.path.at(self.t_state)
         self.ref.translation[0], self.ref.translation[1] = xy
         self._regulate(fz, sp)
@@ -231,6 +236,7 @@ class WipeTask(MachineTask):
             "force_setpoint_n": self.cfg.force_setpoint_n,
             "peak_force_n": self.peak_force,
             "wipe_samples": int(e.size),
+            "missing_force_samples": self.missing_samples,
             "path_length_m": self.path.length,
         }
         if e.size:
