@@ -21,18 +21,25 @@ def _state_spans(t: np.ndarray, states: list[str]) -> list[tuple[float, float, s
     return spans
 
 
+def _shade_states(fig: plt.Figure, axes: list, t: np.ndarray, states: list[str]) -> None:
+    """Shade each state's span on `axes`; one legend of the states above them all (so none covers data)."""
+    palette = plt.get_cmap("tab20")  # 20 colours: a task's states never share one
+    names = list(dict.fromkeys(states))
+    for ax in axes:
+        for t0, t1, s in _state_spans(t, states):
+            ax.axvspan(t0, t1, color=palette(names.index(s) % 20), alpha=0.22, lw=0)
+    handles = [plt.Rectangle((0, 0), 1, 1, color=palette(i % 20), alpha=0.22) for i in range(len(names))]
+    fig.legend(handles, names, loc="upper center", bbox_to_anchor=(0.5, 0.965), ncol=min(len(names), 7),
+               fontsize=7, frameon=False)
+
+
 def plot_force_run(table: pa.Table, path: Path, title: str, setpoint_col: str = "fz_setpoint",
                    force_label: str = "Fz used by the controller") -> Path:
     d = table.to_pydict()
     t = np.asarray(d["t"])
     states = [str(s) for s in d["state"]]
     fig, (ax, ax2) = plt.subplots(2, 1, figsize=(10, 7), height_ratios=[2, 1])
-    palette = plt.get_cmap("Pastel1")
-    names = list(dict.fromkeys(states))
-    for t0, t1, s in _state_spans(t, states):
-        ax.axvspan(t0, t1, color=palette(names.index(s) % 9), alpha=0.5, lw=0)
-    for i, s in enumerate(names):
-        ax.plot([], [], color=palette(i % 9), lw=8, alpha=0.5, label=s)
+    _shade_states(fig, [ax], t, states)
     if "sensor_fz" in d:
         ax.plot(t, d["fz"], color="tab:orange", lw=1, label=force_label)
         ax.plot(t, d["sensor_fz"], color="tab:green", lw=1, label="Fz measured (F/T sensor)")
@@ -42,8 +49,8 @@ def plot_force_run(table: pa.Table, path: Path, title: str, setpoint_col: str = 
         ax.plot(t, d[setpoint_col], "r--", lw=1.2, label="setpoint")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("normal force Fz [N]")
-    ax.set_title(title)
-    ax.legend(loc="upper left", fontsize=8, ncol=2)
+    fig.suptitle(title)
+    ax.legend(loc="lower right", fontsize=8, ncol=3)
     ax.grid(alpha=0.3)
     if "ref_x" in d:
         ax2.plot(d["ref_x"], d["ref_y"], lw=1)
@@ -52,7 +59,7 @@ def plot_force_run(table: pa.Table, path: Path, title: str, setpoint_col: str = 
         ax2.set_title("path on the table (base frame)")
         ax2.set_aspect("equal", adjustable="datalim")
         ax2.grid(alpha=0.3)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.94))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -65,15 +72,10 @@ def plot_peg_run(table: pa.Table, path: Path, title: str) -> Path:
     t = np.asarray(d["t"])
     states = [str(s) for s in d["state"]]
     fig, axes = plt.subplots(4, 1, figsize=(10, 10), sharex=True, height_ratios=[1.2, 1, 1, 0.5])
-    palette = plt.get_cmap("Pastel1")
-    names = list(dict.fromkeys(states))
+    _shade_states(fig, list(axes[:3]), t, states)
     for ax in axes[:3]:
-        for t0, t1, s in _state_spans(t, states):
-            ax.axvspan(t0, t1, color=palette(names.index(s) % 9), alpha=0.5, lw=0)
         ax.grid(alpha=0.3)
     ax = axes[0]
-    for i, s in enumerate(names):
-        ax.plot([], [], color=palette(i % 9), lw=8, alpha=0.5, label=s)
     if "depth" in d:
         ax.plot(t, np.asarray(d["depth"], float) * 1e3, color="tab:green", lw=1.2, label="depth below the mouth")
     for key, colour in (("tip_x", "tab:blue"), ("tip_y", "tab:purple")):
@@ -81,8 +83,8 @@ def plot_peg_run(table: pa.Table, path: Path, title: str) -> Path:
             v = np.asarray(d[key], float)
             ax.plot(t, (v - v[0]) * 1e3, color=colour, lw=1, label=f"{key[-1]} - start")
     ax.set_ylabel("peg [mm]")
-    ax.set_title(title)
-    ax.legend(loc="upper left", fontsize=7, ncol=4)
+    fig.suptitle(title)
+    ax.legend(loc="lower right", fontsize=7, ncol=3)
     used = "virtual" if "sensor_fz" in d else "F/T sensor"
     for ax, keys, unit in ((axes[1], ("fz",), "N"), (axes[2], ("mx", "my"), "N·m")):
         for key, colour in zip(keys, ("tab:red", "tab:orange"), strict=False):
@@ -102,7 +104,7 @@ def plot_peg_run(table: pa.Table, path: Path, title: str) -> Path:
         axes[3].set_ylabel("contact")
         axes[3].grid(alpha=0.3)
     axes[3].set_xlabel("time [s]")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.95))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
