@@ -198,6 +198,9 @@ class VirtualSensorConfig:
         require(self.momentum_gain > 0, f"{where}.momentum_gain", "must be > 0 (1/s)")
         require(self.innovation_gate >= 0, f"{where}.innovation_gate", "must be >= 0 (0: off)")
         require(self.rebias_window_s > 0, f"{where}.rebias_window_s", "must be > 0")
+        require(self.calibration.settle_s > self.rebias_window_s, f"{where}.calibration.settle_s",
+                f"({self.calibration.settle_s} s) must exceed rebias_window_s ({self.rebias_window_s} s): "
+                "the re-bias would average the move")
         for tool in self.observer_by_tool:
             require(tool in ("wipe", "peg"), f"{where}.observer_by_tool", f"unknown tool '{tool}' (wipe, peg)")
         require(len(self.wrench_point) == 3, f"{where}.wrench_point", "must have 3 values (x, y, z) in m")

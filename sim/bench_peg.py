@@ -24,7 +24,7 @@ from sim.drivers import SimArm, SimForceSensor
 from sim.plant import Plant
 from sim.profile import load_profile
 from tasks.base import SETUP_STATES
-from tasks.peg import INSERTION_STATES, PegInHoleTask
+from tasks.peg import PegInHoleTask, wrench_abs_errors
 from tasks.peg_config import PegConfig
 
 log = logging.getLogger(__name__)
@@ -86,7 +86,10 @@ class _ScoredTask:
         self.truth = truth  # the F/T sensor beside another force source (errors are scored), or None
         self.plant = plant
         self.name = task.name
-        self.errors: list[np.ndarray] = []
+        # Per step with the F/T sensor beside the source: the state, and (Mx, My, Fz) of both.
+        self.states: list[str] = []
+        self.virtual: list[np.ndarray] = []
+        self.measured: list[np.ndarray] = []
         self.true_depth = -math.inf
         site = mujoco.mj_name2id(plant.model, mujoco.mjtObj.mjOBJ_SITE, "hole_top")
         self._mouth = np.array(plant.data.site_xpos[site])
@@ -108,12 +111,11 @@ class _ScoredTask:
 
     def step(self, obs: Observation) -> Any:
         measured = self.truth.last if self.truth is not None and self.truth.last is not None else obs.wrench
-        if self.truth is not None and self.task.state_name in INSERTION_STATES:
+        if self.truth is not None:
             v = obs.wrench
-            err = np.abs(np.array([v.torque[0] - measured.torque[0], v.torque[1] - measured.torque[1],
-                                   v.force[2] - measured.force[2]]))
-            if np.all(np.isfinite(err)):  # a timed-out reading is no sample
-                self.errors.append(err)
+            self.states.append(self.task.state_name)
+            self.virtual.append(np.array([v.torque[0], v.torque[1], v.force[2]]))
+            self.measured.append(np.array([measured.torque[0], measured.torque[1], measured.force[2]]))
         tip = self.plant.tool_pose()[0]
         self.true_depth = max(self.true_depth, float((self._mouth - tip) @ self._axis))
         return self.task.step(obs)
@@ -164,7 +166,7 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
         task_time_s=result.sim_time_s, true_depth_m=scored.true_depth, peak_force_n=meter.peak_force,
         peak_state=meter.peak_state,
         probes=s["probes"], realignments=s["realignments"],
-        abs_err=np.array(scored.errors) if scored.errors else np.zeros((0, 3)),
+        abs_err=wrench_abs_errors(scored.states, np.array(scored.virtual), np.array(scored.measured)),
         axis_error_deg=axis_err,
     )
 

@@ -276,9 +276,7 @@ def calibrate(
     dt = cfg.loop.period_s
     model_dir = Path(model_dir) if model_dir is not None else vs.path("model", tool)
     out_dir = Path(out_dir) if out_dir is not None else vs.path("calibration", tool)
-    if cal.settle_s <= vs.rebias_window_s:
-        raise ConfigError(f"virtual_sensor.calibration.settle_s {cal.settle_s} s must exceed "
-                          f"virtual_sensor.rebias_window_s {vs.rebias_window_s} s: the re-bias would average the move")
+    vs.validate(f"{cfg.source}: virtual_sensor")  # a config built in code has not been through the loader
     model = load_observer_model(model_dir, robot)
     targets = posture_targets(robot, cal, np.asarray(cfg.robot.home, float))
     base = Path(cfg.recording.directory)

@@ -416,7 +416,7 @@ class PegInHoleTask(MachineTask):
             before = self._z_track[0] - self._z_track[k]
             recent = self._z_track[k] - self._z_track[-1]
             step = v * k * self.dt
-            if recent < c.stall_fraction * step and before > 0.5 * step:
+            if self._stalling(recent, v) and before > 0.5 * step:
                 self._pressing = True
             elif recent > 0.5 * step:
                 self._pressing = False
@@ -425,6 +425,11 @@ class PegInHoleTask(MachineTask):
             self.ref.translation[2] = max(z, z_now - c.touch_lead_m)
         else:
             self.ref.translation[2] = max(z, min(float(self.ref.translation[2]), z_now - c.max_lead_m))
+
+    def _stalling(self, progress: float, v: float) -> bool:
+        """The tip's `progress` over the last `stall_cycles` cycles is under `stall_fraction` of what a
+        move at `v` commanded: something stops it (the one stall test of descents and search moves)."""
+        return progress < self.cfg.stall_fraction * v * self.cfg.stall_cycles * self.dt
 
     def _survey_drop(self, k: int) -> float:
         """How much lower than the default start touch k can begin: a point opposite an earlier one lies
@@ -593,7 +598,7 @@ class PegInHoleTask(MachineTask):
         self._tip_track.append(float(self._tip.translation @ d))
         k = self.cfg.stall_cycles
         if (dist is None and self._phase_t() > c.stall_after_s and len(self._tip_track) > k
-                and (self._tip_track[-1] - self._tip_track[-1 - k]) < c.stall_fraction * v * k * self.dt):
+                and self._stalling(self._tip_track[-1] - self._tip_track[-1 - k], v)):
             self._stalled += 1
         else:
             self._stalled = 0
@@ -905,15 +910,26 @@ INSERTION_STATES = (S.APPROACH.value, S.PROBE.value, S.BACK_OFF.value, S.SLIDE.v
                     S.INSERT.value, S.REALIGN.value)
 
 
+WRENCH_AXES = ("mx", "my", "fz")  # the paper's 3-axis comparison: what the strategy reads
+
+
+def wrench_abs_errors(states: Any, virtual: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """|virtual - measured| of (Mx, My, Fz), rows (n, 3), on the insertion states' samples where both
+    sources read (a timed-out reading is no sample): (k, 3).  The bench and the run summary score this."""
+    v, m = np.asarray(virtual, float).reshape(-1, 3), np.asarray(measured, float).reshape(-1, 3)
+    rows = np.isin(np.asarray(states, dtype=object), INSERTION_STATES)
+    rows &= np.all(np.isfinite(v), axis=1) & np.all(np.isfinite(m), axis=1)
+    return np.abs(v[rows] - m[rows])
+
+
 def wrench_errors(table: Any) -> dict[str, Any]:
     """Virtual-vs-measured MAE of (Mx, My, Fz) over the insertion states, when the log has both."""
     d = table.to_pydict() if hasattr(table, "to_pydict") else table
     if "sensor_fz" not in d:
         return {}
-    mask = np.isin(np.asarray(d["state"], dtype=object), INSERTION_STATES)
-    out: dict[str, Any] = {"wrench_error_samples": int(mask.sum())}
-    for key, name in (("mx", "mae_mx_nm"), ("my", "mae_my_nm"), ("fz", "mae_fz_n")):
-        a, b = np.asarray(d[key], float)[mask], np.asarray(d[f"sensor_{key}"], float)[mask]
-        ok = np.isfinite(a) & np.isfinite(b)
-        out[name] = float(np.mean(np.abs(a[ok] - b[ok]))) if ok.any() else None
+    e = wrench_abs_errors(d["state"], np.column_stack([d[k] for k in WRENCH_AXES]),
+                          np.column_stack([d[f"sensor_{k}"] for k in WRENCH_AXES]))
+    out: dict[str, Any] = {"wrench_error_samples": len(e)}
+    for i, name in enumerate(("mae_mx_nm", "mae_my_nm", "mae_fz_n")):
+        out[name] = float(e[:, i].mean()) if len(e) else None
     return out

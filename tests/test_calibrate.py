@@ -179,8 +179,19 @@ def test_a_rest_shorter_than_the_rebias_window_is_refused_before_the_cell_opens(
     def must_not_open():
         raise AssertionError("calibrate opened a cell with an impossible rest")
 
-    with pytest.raises(ConfigError, match="settle_s .* must exceed virtual_sensor.rebias_window_s"):
+    with pytest.raises(ConfigError, match=r"virtual_sensor.calibration.settle_s \(0.2 s\) must exceed rebias_window_s"):
         calibrate(cfg, "wipe", vs["robot"], must_not_open, lambda h: None)
+
+
+def test_a_config_whose_rest_is_shorter_than_the_rebias_window_is_refused_at_load(tmp_path):
+    raw = yaml.safe_load((CONFIG_DIR / "cell.yaml").read_text())
+    raw["virtual_sensor"]["calibration"]["settle_s"] = 0.1
+    raw["plant"] = str(CONFIG_DIR / raw["plant"])
+    raw["robot"]["urdf"] = str(CONFIG_DIR / raw["robot"]["urdf"])
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    with pytest.raises(ConfigError, match=r"virtual_sensor.calibration.settle_s \(0.1 s\) must exceed"):
+        load_config(path)
 
 
 def test_the_default_rest_outlasts_the_rebias_window_and_the_creep():
