@@ -14,7 +14,10 @@ the sensor.  The artefact keeps the noise, the learned maps of both observers an
 step is skipped when its artefact is present and matches (unless `force`).  On top of the `samples`
 of the mixed family the dataset gets `PREPARE_SLOW_SHARE` x `samples` of slow, small-amplitude
 excitation: careful task motion (the peg's slides and rotations, 0.005-0.05 rad/s) runs in the
-friction's low-speed regime, which the fast families only cross at their turning points.
+friction's low-speed regime, which the fast families only cross at their turning points.  Given the
+tool's working posture (the CLI gives its task's start, lifted clear of the work surface), it also
+gets `PREPARE_SWEEP_SHARE` x `samples` of slow constant-speed sweeps around it
+(`cell.excitation.sweep_excitation`): the task's postures at the task's steady speeds.
 """
 
 from __future__ import annotations
