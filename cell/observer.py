@@ -226,9 +226,9 @@ class MomentumObserver:
         par = self.p2.params
         # The learned residual: the hybrid's torque minus its physics part (both on the same sample).
         _, residual = self.fast.parts_contact(q, v, a, self._estimate)
-        losses = par.C_m * v + par.f_c * smooth_sign(v, par.sign_eps)
         if self.fast.part != "full":  # the learned part covers the losses too
-            residual = residual - losses - par.B_m * a
+            residual = residual - self.p2.losses(q, v, a)
+        losses = par.C_m * v + par.f_c * smooth_sign(v, par.sign_eps)  # B_m joins M below
         pm, pd = self.pm, self.pd
         M = pin.crba(pm, pd, q)
         M = np.triu(M) + np.triu(M, 1).T + self.B

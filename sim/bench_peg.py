@@ -123,7 +123,7 @@ class _ScoredTask:
 
 def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.ndarray, tilt: np.ndarray,
               seed: int, peg_diameter: float | None, wrap: CellWrapper | None,
-              record_dir: Path | None = None) -> Trial:
+              record_dir: Path | None = None, index: int = 0) -> Trial:
     profile = replace(load_profile(resolve(cfg.plant)), seed=seed)
     if peg_diameter is not None:
         profile = replace(profile, tool=replace(profile.tool, peg_diameter=peg_diameter))
@@ -167,7 +167,7 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
         peak_state=meter.peak_state,
         probes=s["probes"], realignments=s["realignments"],
         abs_err=wrench_abs_errors(scored.states, np.array(scored.virtual), np.array(scored.measured)),
-        axis_error_deg=axis_err,
+        axis_error_deg=axis_err, index=index,
     )
 
 
@@ -188,8 +188,7 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
         if only is not None and i not in only:
             continue
         tr = run_trial(cfg, robot, pcfg, offset, tilt, seed * 1000 + i, peg_diameter, wrap,
-                       record / f"trial_{i:03d}" if record is not None else None)
-        tr = replace(tr, index=i)
+                       record / f"trial_{i:03d}" if record is not None else None, index=i)
         log.info("trial %d: %s in %s s (offset %s mm, tilt %s deg, %d probes, %d realignments) %s", i,
                  "ok" if tr.success else "FAILED", tr.insertion_time_s, np.round(np.array(tr.offset_m) * 1e3, 2),
                  tr.tilt_deg, tr.probes, tr.realignments, tr.reason)

@@ -181,7 +181,8 @@ class PegInHoleTask(MachineTask):
         self._touching = 0
         self._phase = 0
         self._phase_time = 0.0
-        self._tip_track: list[float] = []  # tip position along the current search move, per cycle
+        # The tip's position along the current search move, the last stall_cycles + 1 cycles (the stall test)
+        self._tip_track: collections.deque[float] = collections.deque(maxlen=cfg.stall_cycles + 1)
         self._stalled = 0
         self._phase_from = np.zeros(3)
         self._chord_a = np.zeros(3)
