@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from cell.config import CONFIG_DIR, CellConfig, load_config, resolve
+from cell.config import CONFIG_DIR, TOOLS, CellConfig, load_config, resolve
 from cell.configio import json_default
 from cell.robot import RobotModel, load_robot
 from drivers.errors import CellError, ConfigError
@@ -532,7 +532,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(func=cmd_run)
 
     pr = sub.add_parser("prepare", help="make a tool ready for sensorless tasks: collect, train H1, calibrate")
-    pr.add_argument("--tool", choices=("wipe", "peg"), default="wipe")
+    pr.add_argument("--tool", choices=TOOLS, default="wipe")
     pr.add_argument("--cell", choices=("sim", "real"), default="sim")
     pr.add_argument("--samples", type=int, default=PREPARE_SAMPLES, help="training samples to collect")
     pr.add_argument("--force", action="store_true", help="rebuild every artefact even if present and matching")
@@ -541,7 +541,7 @@ def build_parser() -> argparse.ArgumentParser:
     pr.set_defaults(func=cmd_prepare)
 
     ca = sub.add_parser("calibrate", help="calibrate the virtual force sensor against the F/T sensor")
-    ca.add_argument("--tool", choices=("wipe", "peg"), default="wipe")
+    ca.add_argument("--tool", choices=TOOLS, default="wipe")
     ca.add_argument("--cell", choices=("sim", "real"), default="sim")
     ca.add_argument("--model", default=None, help="torque model artefact (default: virtual_sensor.model_dir)")
     ca.add_argument("--out", default=None, help="calibration folder (default: virtual_sensor.calibration_dir)")

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
-from cell.configio import load_dataclass, read_yaml, require, require_len
+from cell.configio import join, load_dataclass, read_yaml, require, require_len
+
+TOOLS = ("wipe", "peg")  # the tools a cell config knows (virtual_sensor.by_tool keys)
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG_DIR = ROOT / "config"
@@ -162,6 +164,17 @@ class CalibrationConfig:
 
 
 @dataclass
+class ToolSensorSettings:
+    """One tool's values of the virtual sensor's observer settings; unset ones are `virtual_sensor`'s."""
+
+    observer: Literal["kalman", "momentum"] | None = None
+    process_noise_nm: list[float] | None = None
+    innovation_gate: float | None = None
+    momentum_gain: float | None = None
+    zero_at_tare: bool | None = None
+
+
+@dataclass
 class VirtualSensorConfig:
     """The virtual force sensor (paper section 4): external-torque observer + wrench mapping.
 
@@ -169,9 +182,9 @@ class VirtualSensorConfig:
     (as `recording.directory` is): the model lab's H1 for that tool and its calibration."""
 
     observer: Literal["kalman", "momentum"] = "kalman"
-    # Per tool (wipe | peg): the observer its tasks use where it is not `observer` (calibrate reports this
-    # route for the tool).
-    observer_by_tool: dict[str, Literal["kalman", "momentum"]] = field(default_factory=dict)
+    # Per tool (wipe | peg): settings its tasks (and its calibration's reported route) use where they
+    # differ from the ones here; `for_tool` merges them.
+    by_tool: dict[str, ToolSensorSettings] = field(default_factory=dict)
     mapping: Literal["jacobian", "learned"] = "jacobian"
     data_dir: str = "artifacts/data/{tool}"
     model_dir: str = "artifacts/models/{tool}"
@@ -187,6 +200,10 @@ class VirtualSensorConfig:
     # breaking away from stiction at the start of the approach reads as a contact).
     momentum_gain: float = 10.0
     rebias_window_s: float = 0.2  # free-space re-bias averages the raw estimate over this much
+    # Whether a task's tare (`ForceSource.rebias`) re-zeroes the estimate.  At rest every joint's static
+    # friction holds some unknown torque within its break-away band, which a zero taken there carries
+    # into the motion that follows (see config/cell.yaml for the tool that goes without).
+    zero_at_tare: bool = True
     wrench_point: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.035])  # flange frame: the F/T face
     singular_sigma: float = 0.03  # smallest Jacobian singular value below which the map is damped, flagged
     max_damping: float = 0.05  # damping at an exact singularity
@@ -201,14 +218,19 @@ class VirtualSensorConfig:
         require(self.calibration.settle_s > self.rebias_window_s, f"{where}.calibration.settle_s",
                 f"({self.calibration.settle_s} s) must exceed rebias_window_s ({self.rebias_window_s} s): "
                 "the re-bias would average the move")
-        for tool in self.observer_by_tool:
-            require(tool in ("wipe", "peg"), f"{where}.observer_by_tool", f"unknown tool '{tool}' (wipe, peg)")
+        for tool in self.by_tool:
+            require(tool in TOOLS, f"{where}.by_tool", f"unknown tool '{tool}' ({', '.join(TOOLS)})")
+            self.for_tool(tool).validate(join(where, f"by_tool.{tool}"))
         require(len(self.wrench_point) == 3, f"{where}.wrench_point", "must have 3 values (x, y, z) in m")
         require(self.singular_sigma > 0 and self.max_damping > 0, f"{where}.singular_sigma",
                 "and max_damping must be > 0")
 
-    def observer_for(self, tool: str) -> str:
-        return self.observer_by_tool.get(tool, self.observer)
+    def for_tool(self, tool: str) -> VirtualSensorConfig:
+        """These settings with `tool`'s own values (`by_tool`) in place of the shared ones."""
+        own = self.by_tool.get(tool)
+        if own is None:
+            return replace(self, by_tool={})
+        return replace(self, by_tool={}, **{k: v for k, v in asdict(own).items() if v is not None})
 
     def path(self, which: str, tool: str) -> Path:
         return Path(str(getattr(self, f"{which}_dir")).replace("{tool}", tool))

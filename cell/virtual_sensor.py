@@ -158,9 +158,11 @@ class VirtualForceSource:
 
     name = "virtual"
 
-    def __init__(self, observer: TorqueObserver, mapping: JacobianMap | LearnedMap, label: str = "") -> None:
+    def __init__(self, observer: TorqueObserver, mapping: JacobianMap | LearnedMap, label: str = "",
+                 zero_at_tare: bool = True) -> None:
         self.observer = observer
         self.mapping = mapping
+        self.zero_at_tare = zero_at_tare  # False: a task's tare leaves the model's own zero (see VirtualSensorConfig)
         self.label = label or f"{observer.kind}+{mapping.kind}"
         self.ill_conditioned_cycles = 0
         self.cycles = 0
@@ -184,7 +186,8 @@ class VirtualForceSource:
         return w
 
     def rebias(self) -> None:
-        self.observer.rebias()
+        if self.zero_at_tare:
+            self.observer.rebias()
 
     def summary(self) -> dict[str, Any]:
         return {"virtual_sensor": self.label, "ill_conditioned_cycles": self.ill_conditioned_cycles}
@@ -209,7 +212,8 @@ def build_virtual_source(cfg: VirtualSensorConfig, robot: RobotModel, tool: str,
     calibration_dir = Path(calibration_dir) if calibration_dir is not None else cfg.path("calibration", tool)
     model = load_observer_model(model_dir, robot)
     cal = load_calibration(calibration_dir, robot, tool, model_dir, model)
-    return source_from(cfg, robot, dt, model, cal, observer or cfg.observer_for(tool), mapping or cfg.mapping,
+    own = cfg.for_tool(tool)
+    return source_from(own, robot, dt, model, cal, observer or own.observer, mapping or own.mapping,
                        str(calibration_dir))
 
 
@@ -219,10 +223,10 @@ def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: L
                         cfg.momentum_gain, cfg.rebias_window_s, cfg.innovation_gate)
     jac = JacobianMap(robot, np.asarray(cfg.wrench_point, float), cfg.singular_sigma, cfg.max_damping)
     if mapping == "jacobian":
-        return VirtualForceSource(obs, jac)
+        return VirtualForceSource(obs, jac, zero_at_tare=cfg.zero_at_tare)
     if mapping == "learned":
         boosters = cal.boosters.get(observer)
         if not boosters or any(a not in boosters for a in LEARNED_INPUTS):
             raise DataError(f"{where}: no learned map for the {observer} observer; recalibrate")
-        return VirtualForceSource(obs, LearnedMap(boosters, jac, robot.n))
+        return VirtualForceSource(obs, LearnedMap(boosters, jac, robot.n), zero_at_tare=cfg.zero_at_tare)
     raise DataError(f"unknown wrench mapping {mapping!r} (jacobian or learned)")

@@ -274,12 +274,12 @@ def calibrate(
     CLI: main.py calibrate [--tool wipe|peg] [--cell sim|real] [--seed N] [--model DIR] [--out DIR] [--json]
     """
     t_start = time.perf_counter()
-    vs = cfg.virtual_sensor
+    cfg.virtual_sensor.validate(f"{cfg.source}: virtual_sensor")  # a config built in code has not been loaded
+    vs = cfg.virtual_sensor.for_tool(tool)  # the tool's observer settings: its route is the one reported
     cal = vs.calibration
     dt = cfg.loop.period_s
     model_dir = Path(model_dir) if model_dir is not None else vs.path("model", tool)
     out_dir = Path(out_dir) if out_dir is not None else vs.path("calibration", tool)
-    vs.validate(f"{cfg.source}: virtual_sensor")  # a config built in code has not been through the loader
     model = load_observer_model(model_dir, robot)
     targets = posture_targets(robot, cal, np.asarray(cfg.robot.home, float))
     base = Path(cfg.recording.directory)
@@ -323,7 +323,7 @@ def calibrate(
 
     routes: dict[str, dict[str, Any]] = {}
     boosters: dict[str, dict[str, Any]] = {}
-    chosen = f"{vs.observer_for(tool)}+{vs.mapping}"
+    chosen = f"{vs.observer}+{vs.mapping}"
     split: dict[str, dict[str, float]] = {}
     for kind in tqdm(OBSERVERS, desc="observers", unit="observer"):
         obs = make_observer(kind, model, dt, R, np.asarray(vs.process_noise_nm), vs.momentum_gain, vs.rebias_window_s,

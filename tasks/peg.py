@@ -161,6 +161,7 @@ class PegInHoleTask(MachineTask):
         self._lifting = False
         self._z_track: collections.deque[float] = collections.deque(maxlen=2 * cfg.stall_cycles + 1)  # tip z
         self._pressing = False  # a guarded descent decelerated as on a contact: the lead is cut to touch_lead_m
+        self._press_z = 0.0  # the tip's height when it stalled
         self._descend_t = -1.0  # the task time of the last guarded-descent step
         self._lift_dir = EZ.copy()
         self._free_z = 0.0
@@ -403,8 +404,8 @@ class PegInHoleTask(MachineTask):
         move the tip still trails, and that windup would press into a contact before it is seen.  A tip that
         was descending and has stalled (its last `stall_cycles` progress under stall_fraction of the
         commanded, the ones before over half of it) is on something: the reference is drawn back to
-        touch_lead_m ahead until the tip moves on -- the force on a stiff face stays bounded while the
-        wrench confirms the touch."""
+        touch_lead_m ahead until the tip moves on below where it stalled -- the force on a stiff face stays
+        bounded while the wrench confirms the touch, also while the tip bounces on it."""
         c = self.cfg
         z_now = float(self._tip.translation[2])
         if abs(self.t - self.dt - self._descend_t) > 0.5 * self.dt:  # a new descent (or one resumed after a hold)
@@ -418,8 +419,13 @@ class PegInHoleTask(MachineTask):
             recent = self._z_track[k] - self._z_track[-1]
             step = v * k * self.dt
             if self._stalling(recent, v) and before > 0.5 * step:
+                if not self._pressing:
+                    self._press_z = z_now
                 self._pressing = True
-            elif recent > 0.5 * step:
+            elif recent > 0.5 * step and z_now < self._press_z - 0.5 * c.max_lead_m:
+                # Moving on below where it stopped: it was a stick, not a face.  A tip that bounced off the
+                # face and is falling back onto it is not below that height: the lead stays cut (given
+                # back there, the servo's lead drove the next impact to 170-200 N).
                 self._pressing = False
         z = float(self.ref.translation[2]) - v * self.dt
         if self._pressing:  # take back the lead the servo had wound up: it presses into the face

@@ -36,7 +36,7 @@ def test_calibration_reports_every_route_on_held_out_postures(vs):
     # it never saw (a loose bound: this is a small model on a reduced calibration).
     assert rep["sensor_fz_range_n"][1] > 40
     cfg_vs = vs["cfg"].virtual_sensor
-    assert rep["route"] == f"{cfg_vs.observer_for('wipe')}+{cfg_vs.mapping}" and rep["fz_mae_n"] < 3.0
+    assert rep["route"] == f"{cfg_vs.for_tool('wipe').observer}+{cfg_vs.mapping}" and rep["fz_mae_n"] < 3.0
     for r in rep["routes"].values():
         assert {"fz_mae_n", "mx_mae_nm", "my_mae_nm"} <= set(r)
     # The configured route's error split by posture: the re-bias offset and the noise about it
@@ -151,7 +151,7 @@ def test_wipe_runs_with_the_virtual_sensor_in_the_loop(vs, tmp_path, capsys):
     assert main(["-q", "run", "wipe", "--config", str(path), "--json"]) == 0
     s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert s["force_source"] == "virtual"
-    assert s["virtual_sensor"] == f"{cfg.virtual_sensor.observer_for('wipe')}+{cfg.virtual_sensor.mapping}"
+    assert s["virtual_sensor"] == f"{cfg.virtual_sensor.for_tool('wipe').observer}+{cfg.virtual_sensor.mapping}"
     assert s["outcome"] == "done" and not s["safety_stop"]
     # Virtual against measured over the wiping samples (small model: loose bounds; the figures of the
     # shipped artefacts are in the README).
