@@ -421,6 +421,7 @@ class TM5ModbusArm(Arm):
         self._client: ModbusTcpClient | None = None
         self._down_reason = "not connected"
         self._backoff_s = config.reconnect_initial_s
+        self._stop_failed = False  # the last stop attempt raised: the next one may reconnect
         self._next_attempt = 0.0
         self._host_seq = 0
         self._counter_raw: int | None = None
@@ -530,12 +531,17 @@ class TM5ModbusArm(Arm):
         )
 
     def _stop(self) -> None:
-        # Never reconnects: a stop must not wait on a dead link (the robot's watchdog covers that case).
+        # A first stop never waits on the link: a dead one fails at once (the robot's watchdog stops the arm
+        # then; a fault's stop must not add a connect to the time a lost link takes to detect).  A stop
+        # retried after a failed one may open the link again -- one connect attempt, bounded by timeout_s --
+        # so a stop whose reply was lost gets through on a fresh link.
+        retry, self._stop_failed = self._stop_failed, True
         q = self._last_sent if self._last_sent is not None else self._last_q
-        self._write_host_block(Command.STOP, q, may_reconnect=False)
+        self._write_host_block(Command.STOP, q, may_reconnect=retry)
         if self.config.stop_coil:
             self._call("write coil", COIL_STOP, lambda c, dev: c.write_coil(COIL_STOP, True, device_id=dev),
-                       may_reconnect=False)
+                       may_reconnect=retry)
+        self._stop_failed = False
 
     # ----------------------------------------------------------------------------- wire: data
     def _read_state(self) -> ArmState:

@@ -437,6 +437,26 @@ def test_stop_holds_and_arm_releases(arm: TM5ModbusArm, plant: FakePlant) -> Non
 
 
 @pytest.mark.timeout(20)
+def test_a_stop_whose_reply_is_lost_gets_through_when_retried(arm: TM5ModbusArm, emulator: TM5Emulator,
+                                                              plant: FakePlant) -> None:
+    # The control loop commands a stop up to three times.  A first attempt whose reply is late loses the
+    # link; the retry must open a fresh one at once and get the stop through, not fail on "link is down"
+    # (a CI run of the Ctrl+C test logged "could not command a stop" that way).
+    arm.arm()
+    arm.read_state()
+    emulator.delay_replies(200, seconds=0.05)
+    with pytest.raises(LinkLostError, match="no valid reply"):
+        arm.stop()
+    time.sleep(0.06)
+    emulator.clear_faults()
+    t0 = time.perf_counter()
+    arm.stop()
+    assert time.perf_counter() - t0 < 0.5
+    wait_for(lambda: plant.hold_calls >= 1, what="the hold")
+    assert read_until_ok(arm).status.protective_stop
+
+
+@pytest.mark.timeout(20)
 def test_stop_coil_ends_the_project(emulator: TM5Emulator, plant: FakePlant) -> None:
     arm = make_arm(emulator, stop_coil=True)
     with arm:
