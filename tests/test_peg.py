@@ -205,34 +205,48 @@ def _bare_task(cfg, pc: PegConfig | None = None):
                          cfg.scene.table_height, cfg.loop.period_s, np.asarray(cfg.robot.home, float))
 
 
+class _Descent:
+    """A bare task's guarded descent at the survey speed, the measured tip scripted by the test."""
+
+    def __init__(self, cfg) -> None:
+        import pinocchio as pin
+
+        self.pin = pin
+        self.pc = PegConfig()
+        self.dt = cfg.loop.period_s
+        self.task = _bare_task(cfg, self.pc)
+        self.v = self.pc.survey_speed_mps
+        self.z0 = 0.06
+        self.task.ref = pin.SE3(np.eye(3), np.array([0.45, -0.12, self.z0]))
+
+    def cycle(self, tip_z: float) -> float:
+        """One control cycle with the tip at `tip_z`: how far the reference then leads the tip."""
+        self.task.t += self.dt
+        self.task._tip = self.pin.SE3(np.eye(3), np.array([0.45, -0.12, tip_z]))
+        self.task._descend(self.v)
+        return tip_z - float(self.task.ref.translation[2])
+
+    def onto_face(self) -> tuple[list[float], float]:
+        """Descend freely at the commanded speed for 12 cycles: the leads, and where the tip is then."""
+        leads = [self.cycle(self.z0 - self.v * self.dt * k) for k in range(12)]
+        return leads, self.z0 - self.v * self.dt * 11
+
+
 def test_a_guarded_descent_that_stalls_on_a_face_cuts_its_lead(cfg):
     # The tip descends at the commanded speed, then stops dead (a stiff face): the reference may lead it
     # by only touch_lead_m from then on (the force on the face stays bounded while the wrench confirms
     # the touch); once the tip moves on again, the full lead is back.
-    import pinocchio as pin
-
-    pc = PegConfig()
-    dt = cfg.loop.period_s
-    task = _bare_task(cfg, pc)
-    v = pc.survey_speed_mps
-    z = 0.06
-
-    def cycle(tip_z):
-        task.t += dt
-        task._tip = pin.SE3(np.eye(3), np.array([0.45, -0.12, tip_z]))
-        task._descend(v)
-        return tip_z - float(task.ref.translation[2])  # how far the reference leads the tip
-
-    task.ref = pin.SE3(np.eye(3), np.array([0.45, -0.12, z]))
-    leads = [cycle(z - v * dt * k) for k in range(12)]  # moving freely at the commanded speed
-    assert max(leads) <= pc.max_lead_m + 1e-12 and not task._pressing
-    z_face = z - v * dt * 11
-    leads = [cycle(z_face) for _ in range(10)]  # stopped dead on the face
-    assert task._pressing
+    d = _Descent(cfg)
+    pc = d.pc
+    leads, z_face = d.onto_face()
+    assert max(leads) <= pc.max_lead_m + 1e-12 and not d.task._pressing
+    leads = [d.cycle(z_face) for _ in range(10)]  # stopped dead on the face
+    assert d.task._pressing
     assert leads[-1] <= pc.touch_lead_m + 1e-12
     assert leads[-1] < pc.max_lead_m / 2
-    leads = [cycle(z_face - v * dt * k) for k in range(1, 8)]  # it was a stick, not a face: it moves on
-    assert not task._pressing
+    for k in range(1, 8):  # it was a stick, not a face: it moves on
+        d.cycle(z_face - d.v * d.dt * k)
+    assert not d.task._pressing
 
 
 def test_a_tip_bouncing_on_the_face_keeps_the_lead_cut(cfg):
@@ -240,53 +254,29 @@ def test_a_tip_bouncing_on_the_face_keeps_the_lead_cut(cfg):
     # onto the face faster than the descent.  That fall is not a stick breaking free: the lead stays cut
     # to touch_lead_m all the way down (with the full lead back the servo's windup drove the next impact
     # to 170-200 N on the bench); only moving on below where it stalled gives the lead back.
-    import pinocchio as pin
-
-    pc = PegConfig()
-    dt = cfg.loop.period_s
-    task = _bare_task(cfg, pc)
-    v = pc.survey_speed_mps
-    z = 0.06
-
-    def cycle(tip_z):
-        task.t += dt
-        task._tip = pin.SE3(np.eye(3), np.array([0.45, -0.12, tip_z]))
-        task._descend(v)
-        return tip_z - float(task.ref.translation[2])
-
-    task.ref = pin.SE3(np.eye(3), np.array([0.45, -0.12, z]))
-    for k in range(12):
-        cycle(z - v * dt * k)
-    z_face = z - v * dt * 11
+    d = _Descent(cfg)
+    _, z_face = d.onto_face()
     for _ in range(5):
-        cycle(z_face)
-    assert task._pressing
+        d.cycle(z_face)
+    assert d.task._pressing
     leads, pressing = [], []
     for h in (3e-5, 6e-5, 8e-5, 6e-5, 3e-5, 1e-5, 0.0, 0.0, 0.0):
-        leads.append(cycle(z_face + h))
-        pressing.append(task._pressing)
+        leads.append(d.cycle(z_face + h))
+        pressing.append(d.task._pressing)
     assert all(pressing), pressing
-    assert max(leads) <= pc.touch_lead_m + 1e-12
+    assert max(leads) <= d.pc.touch_lead_m + 1e-12
     for k in range(1, 10):  # through the face: it moves on
-        cycle(z_face - v * dt * k)
-    assert not task._pressing
+        d.cycle(z_face - d.v * d.dt * k)
+    assert not d.task._pressing
 
 
 def test_a_descent_starting_from_rest_keeps_its_full_lead(cfg):
     # A tip that has not moved yet (the arm sticks at the start of a move) has not decelerated onto
     # anything: the lead stays max_lead_m so the servo can break it free.
-    import pinocchio as pin
-
-    pc = PegConfig()
-    dt = cfg.loop.period_s
-    task = _bare_task(cfg, pc)
-    task.ref = pin.SE3(np.eye(3), np.array([0.45, -0.12, 0.06]))
-    for _ in range(15):
-        task.t += dt
-        task._tip = pin.SE3(np.eye(3), np.array([0.45, -0.12, 0.06]))
-        task._descend(pc.survey_speed_mps)
-    assert not task._pressing
-    assert 0.06 - float(task.ref.translation[2]) == pytest.approx(pc.max_lead_m)
+    d = _Descent(cfg)
+    leads = [d.cycle(d.z0) for _ in range(15)]
+    assert not d.task._pressing
+    assert leads[-1] == pytest.approx(d.pc.max_lead_m)
 
 
 @pytest.mark.slow
