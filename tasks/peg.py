@@ -425,7 +425,7 @@ class PegInHoleTask(MachineTask):
             elif recent > 0.5 * step and z_now < self._press_z - 0.5 * c.max_lead_m:
                 # Moving on below where it stopped: it was a stick, not a face.  A tip that bounced off the
                 # face and is falling back onto it is not below that height: the lead stays cut (given
-                # back there, the servo's lead drove the next impact to 170-200 N).
+                # back there, it pressed a bench trial's next impact to 174 N).
                 self._pressing = False
         z = float(self.ref.translation[2]) - v * self.dt
         if self._pressing:  # take back the lead the servo had wound up: it presses into the face

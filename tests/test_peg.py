@@ -252,8 +252,8 @@ def test_a_guarded_descent_that_stalls_on_a_face_cuts_its_lead(cfg):
 def test_a_tip_bouncing_on_the_face_keeps_the_lead_cut(cfg):
     # A stiff face throws the tip back up after the first touch (the arm's own spring), and it falls back
     # onto the face faster than the descent.  That fall is not a stick breaking free: the lead stays cut
-    # to touch_lead_m all the way down (with the full lead back the servo's windup drove the next impact
-    # to 170-200 N on the bench); only moving on below where it stalled gives the lead back.
+    # to touch_lead_m all the way down (with the full lead back, a bench trial's next impact reached
+    # 174 N); only moving on below where it stalled gives the lead back.
     d = _Descent(cfg)
     _, z_face = d.onto_face()
     for _ in range(5):
