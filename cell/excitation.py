@@ -737,12 +737,9 @@ def sweep_excitation(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, d
         out.append(q + np.cumsum(v * (1.0 - blend)[:, None], axis=0) * dt)  # to rest
         return out
 
-    segments = [replace(s, traj=traj_base, kind="sweep") for s in
-                transfer(np.asarray(cfg.robot.home if start is None else start, float), c, robot, cfg, ex, dt,
-                         speed=0.7)]
-    seg_id = segment_base
-    for s in segments:
-        s.segment, seg_id = seg_id, seg_id + 1
+    way_in = transfer(np.asarray(cfg.robot.home if start is None else start, float), c, robot, cfg, ex, dt, speed=0.7)
+    segments = [replace(s, traj=traj_base, segment=segment_base + i, kind="sweep") for i, s in enumerate(way_in)]
+    seg_id = segment_base + len(segments)
     q = c.copy()
     blocks = 0
     while sum(len(s.q) for s in segments) < samples:

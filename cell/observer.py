@@ -28,7 +28,6 @@ from filterpy.kalman import KalmanFilter
 from cell.dataset import FilterConfig
 from cell.dynamics.fastpredict import FastPredictor
 from cell.dynamics.learned import LearnedModel
-from cell.dynamics.physics import smooth_sign
 from drivers.interfaces import ArmState
 
 
@@ -208,6 +207,7 @@ class MomentumObserver:
         self.K = np.broadcast_to(np.asarray(gain, float), (n,)).copy()
         par = self.p2.params
         self.B = np.diag(par.B_m)
+        self._no_acc = np.zeros(n)
         self.bias = _Bias(n, rebias_samples)
         self.raw = np.zeros(n)
         self.reset()
@@ -223,12 +223,11 @@ class MomentumObserver:
     def update(self, state: ArmState) -> np.ndarray:
         q = np.asarray(state.q, float)
         v, a = self.fast.derivs.step(q, state.dq)
-        par = self.p2.params
         # The learned residual: the hybrid's torque minus its physics part (both on the same sample).
         _, residual = self.fast.parts_contact(q, v, a, self._estimate)
         if self.fast.part != "full":  # the learned part covers the losses too
             residual = residual - self.p2.losses(q, v, a)
-        losses = par.C_m * v + par.f_c * smooth_sign(v, par.sign_eps)  # B_m joins M below
+        losses = self.p2.losses(q, v, self._no_acc)  # without B_m q'': the rotor inertia joins M below
         pm, pd = self.pm, self.pd
         M = pin.crba(pm, pd, q)
         M = np.triu(M) + np.triu(M, 1).T + self.B

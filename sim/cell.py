@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cell.config import CellConfig, resolve
+from cell.config import TOOLS, CellConfig, resolve
 from cell.force import SensorForceSource
 from cell.loop import OpenCell
 from drivers.errors import ConfigError
@@ -47,8 +47,8 @@ def make_plant(cfg: CellConfig, seed: int | None = None, scene_kind: str | None 
             f"({profile.sample_period_s}); the simulated controller runs at one rate"
         )
     scene = cfg.scene if scene_kind is None else replace(cfg.scene, kind=scene_kind)
-    if tool is not None and tool not in ("wipe", "peg"):
-        raise ConfigError(f"unknown tool '{tool}' (wipe or peg)")
+    if tool is not None and tool not in TOOLS:
+        raise ConfigError(f"unknown tool '{tool}' ({' or '.join(TOOLS)})")
     return Plant(resolve(cfg.robot.urdf), profile, scene, np.asarray(cfg.robot.home, float), tool_kind=tool)
 
 

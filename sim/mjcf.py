@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from cell.config import SceneConfig
+from cell.config import TOOLS, SceneConfig
 from sim.profile import LINKS, PlantProfile
 
 HOLE_WALL_SEGMENTS = 32
@@ -156,8 +156,8 @@ def build_mjcf(
     # The peg scene always carries the peg; other scenes the wiping tool unless `tool_kind` names
     # one ("wipe" or "peg"): the free scene collects data and calibrates with either tool mounted.
     kind = tool_kind or ("peg" if scene.kind == "peg" else "wipe")
-    if kind not in ("wipe", "peg"):
-        raise ValueError(f"unknown tool {kind!r} (wipe or peg)")
+    if kind not in TOOLS:
+        raise ValueError(f"unknown tool {kind!r} ({' or '.join(TOOLS)})")
     opening, closing = _arm_bodies(urdf, profile)
     tool_xml, tcp = _tool(profile, kind)
     world = ""

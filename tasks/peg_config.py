@@ -91,7 +91,7 @@ class PegConfig:
     insert_speed_limit_mps: float = 0.015  # the impedance law's step is clipped to this speed
     free_insert_speed_mps: float = 0.016  # feed while the peg meets no resistance in the hole
     # ... but slower until the peg is entry_depth_m deep: a peg centred 0.1-0.15 mm off chatters on the
-    # mouth's edge (at 5 mm/s over 4 mm: 75-95 N spikes; at 3 mm/s over 2 mm: <= 71 N in 50 trials).
+    # mouth's edge (at 5 mm/s over 4 mm, spikes up to 95-101 N in 50 trials; at 3 mm/s over 2 mm, <= 71 N).
     entry_speed_mps: float = 0.003
     entry_depth_m: float = 0.002
     hole_diameter_m: float = 0.0218  # the nominal hole (paper: 21.8 mm); with the peg, the nominal clearance
