@@ -172,6 +172,8 @@ class ToolSensorSettings:
     innovation_gate: float | None = None
     momentum_gain: float | None = None
     zero_at_tare: bool | None = None
+    mapping: Literal["jacobian", "learned", "contact"] | None = None
+    free_moment_nm: float | None = None
 
 
 @dataclass
@@ -185,7 +187,9 @@ class VirtualSensorConfig:
     # Per tool (wipe | peg): settings its tasks (and its calibration's reported route) use where they
     # differ from the ones here; `for_tool` merges them.
     by_tool: dict[str, ToolSensorSettings] = field(default_factory=dict)
-    mapping: Literal["jacobian", "learned"] = "jacobian"
+    # jacobian: (J^T)^+ tau_ext | learned: the paper's XGBoost Fz, Mx, My | contact: (J^T)^+ with the
+    # prior that the tool is touched at its TCP (cell/wrench_map.py ContactMap)
+    mapping: Literal["jacobian", "learned", "contact"] = "jacobian"
     data_dir: str = "artifacts/data/{tool}"
     model_dir: str = "artifacts/models/{tool}"
     calibration_dir: str = "artifacts/calibration/{tool}"
@@ -204,6 +208,8 @@ class VirtualSensorConfig:
     # friction holds some unknown torque within its break-away band, which a zero taken there carries
     # into the motion that follows (see config/cell.yaml for the tool that goes without).
     zero_at_tare: bool = True
+    # The contact map's prior standard deviation of the moment a force at the TCP does not explain [N·m].
+    free_moment_nm: float = 0.3
     wrench_point: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.035])  # flange frame: the F/T face
     singular_sigma: float = 0.03  # smallest Jacobian singular value below which the map is damped, flagged
     max_damping: float = 0.05  # damping at an exact singularity
@@ -215,6 +221,7 @@ class VirtualSensorConfig:
         require(self.momentum_gain > 0, f"{where}.momentum_gain", "must be > 0 (1/s)")
         require(self.innovation_gate >= 0, f"{where}.innovation_gate", "must be >= 0 (0: off)")
         require(self.rebias_window_s > 0, f"{where}.rebias_window_s", "must be > 0")
+        require(self.free_moment_nm > 0, f"{where}.free_moment_nm", f"must be > 0 (N·m), got {self.free_moment_nm}")
         require(self.calibration.settle_s > self.rebias_window_s, f"{where}.calibration.settle_s",
                 f"({self.calibration.settle_s} s) must exceed rebias_window_s ({self.rebias_window_s} s): "
                 "the re-bias would average the move")

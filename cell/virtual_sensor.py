@@ -27,7 +27,7 @@ from cell.dynamics.learned import LearnedModel
 from cell.dynamics.physics import urdf_sha256
 from cell.observer import TorqueObserver, make_observer
 from cell.robot import RobotModel
-from cell.wrench_map import LEARNED_INPUTS, JacobianMap, LearnedMap
+from cell.wrench_map import LEARNED_INPUTS, ContactMap, JacobianMap, LearnedMap
 from drivers.errors import DataError
 from drivers.interfaces import ArmState, Wrench
 
@@ -224,9 +224,18 @@ def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: L
     jac = JacobianMap(robot, np.asarray(cfg.wrench_point, float), cfg.singular_sigma, cfg.max_damping)
     if mapping == "jacobian":
         return VirtualForceSource(obs, jac, zero_at_tare=cfg.zero_at_tare)
+    if mapping == "contact":
+        return VirtualForceSource(obs, contact_map(cfg, robot, np.asarray(cal.measurement_var)),
+                                  zero_at_tare=cfg.zero_at_tare)
     if mapping == "learned":
         boosters = cal.boosters.get(observer)
         if not boosters or any(a not in boosters for a in LEARNED_INPUTS):
             raise DataError(f"{where}: no learned map for the {observer} observer; recalibrate")
         return VirtualForceSource(obs, LearnedMap(boosters, jac, robot.n), zero_at_tare=cfg.zero_at_tare)
-    raise DataError(f"unknown wrench mapping {mapping!r} (jacobian or learned)")
+    raise DataError(f"unknown wrench mapping {mapping!r} (jacobian, learned or contact)")
+
+
+def contact_map(cfg: VirtualSensorConfig, robot: RobotModel, joint_var: np.ndarray) -> ContactMap:
+    """The contact-prior map for the mounted tool: touched at its TCP, the residual variances as weights."""
+    return ContactMap(robot, np.asarray(cfg.wrench_point, float), robot.tool.tcp_offset, cfg.free_moment_nm,
+                      joint_var, cfg.singular_sigma, cfg.max_damping)

@@ -6,6 +6,10 @@ Both report the wrench the tool exerts on the environment, in the F/T sensor's f
 * `JacobianMap`: W = (J^T)^+ tau_ext with J the 6xn LOCAL Jacobian of the wrench point, damped
   near singularities (the damping grows as the smallest singular value drops below a threshold, so
   the gain along a vanishing direction stays bounded) and flagged when ill-conditioned;
+* `ContactMap`: the same equations solved with a prior on where a tool is touched: a force at the
+  tool's contact point (its TCP) plus a small free moment (Gaussian prior, `free_moment_nm`), weighted
+  by the observer's per-joint residual variance.  A tool touched at its tip (a peg) then reads
+  moments consistent with that force's lever, not the joints' uncorrelated model errors;
 * `LearnedMap` (paper eq. for the 3-axis sensor): Fz = f(q1..q6, tau_ext1..3),
   Mx = f(q1..q6, tau_ext5), My = f(q1..q6, tau_ext4), one XGBoost model each, trained against the F/T
   sensor; served through the compiled trees of `FlatForest` (tens of microseconds).  The three axes
@@ -71,6 +75,44 @@ class JacobianMap:
         gain = s / (s * s + lam2)
         w = U @ (gain * (Vt @ np.asarray(tau_ext, float)))
         return Mapped(wrench=w, ill_conditioned=smin < self.sigma0, sigma_min=smin)
+
+
+class ContactMap(JacobianMap):
+    """Wrench from tau_ext = J^T w with w = A p, p = (F, m): the force F at the contact point `contact`
+    (flange frame) and a free moment m, so the moment at the wrench point is r x F + m.
+
+    Minimises sum_j (J^T A p - tau_ext)_j^2 / var_j + |m|^2 / free_moment_nm^2 (the joints weighted by
+    the variance of their model residual).  Six joint torques determine any 6-axis wrench exactly; the
+    prior decides how errors in them split between a force and a moment: a moment the contact's lever
+    does not explain must be supported by the joints that carry moments best, else it is read as the
+    force it would take.  Near a singularity the whole wrench is damped as in `JacobianMap`."""
+
+    kind = "contact"
+
+    def __init__(self, robot: RobotModel, point: np.ndarray, contact: np.ndarray, free_moment_nm: float,
+                 joint_var: np.ndarray, singular_sigma: float = 0.03, max_damping: float = 0.05) -> None:
+        super().__init__(robot, point, singular_sigma, max_damping)
+        if free_moment_nm <= 0:
+            raise ValueError(f"free_moment_nm must be > 0, got {free_moment_nm}")
+        var = np.asarray(joint_var, float).reshape(-1)
+        if var.shape != (robot.n,) or not np.all(np.isfinite(var)) or np.any(var <= 0):
+            raise ValueError(f"joint_var must be {robot.n} positive numbers, got {var.tolist()}")
+        r = np.asarray(contact, float) - np.asarray(point, float)  # the wrench point's frame is the flange's
+        self.A = np.eye(6)
+        self.A[3:, :3] = pin.skew(r)
+        self.W = np.diag(1.0 / var)
+        self.prior = np.diag([0.0, 0.0, 0.0] + [1.0 / free_moment_nm**2] * 3)
+        self._wbar = float(np.mean(1.0 / var))
+
+    def map(self, q: np.ndarray, tau_ext: np.ndarray) -> Mapped:
+        J = self.jacobian(q)
+        smin = float(np.linalg.svd(J, compute_uv=False)[-1])
+        B = J.T @ self.A
+        H = B.T @ self.W @ B + self.prior
+        if smin < self.sigma0:  # as JacobianMap: damping fades in near the singularity (here on all of p)
+            H = H + (1.0 - (smin / self.sigma0) ** 2) * self.lam_max**2 * self._wbar * np.eye(6)
+        p = np.linalg.solve(H, B.T @ (self.W @ np.asarray(tau_ext, float)))
+        return Mapped(wrench=self.A @ p, ill_conditioned=smin < self.sigma0, sigma_min=smin)
 
 
 def learned_features(q: np.ndarray, tau_ext: np.ndarray) -> np.ndarray:

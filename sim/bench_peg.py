@@ -51,6 +51,7 @@ class Trial:
     abs_err: np.ndarray  # (n, 3) |virtual - measured| of (Mx, My, Fz) during the insertion
     axis_error_deg: float | None = None  # surveyed hole axis vs the fixture's true one
     index: int = 0  # the trial's number in the bench's sequence of draws
+    recollided: int = 0  # physics steps the plant took again after a failed collision detection
 
 
 class _Tap:
@@ -167,7 +168,7 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
         peak_state=meter.peak_state,
         probes=s["probes"], realignments=s["realignments"],
         abs_err=wrench_abs_errors(scored.states, np.array(scored.virtual), np.array(scored.measured)),
-        axis_error_deg=axis_err, index=index,
+        axis_error_deg=axis_err, index=index, recollided=plant.recollided,
     )
 
 
@@ -220,9 +221,12 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
         "max_axis_error_deg": max((r.axis_error_deg for r in results if r.axis_error_deg is not None),
                                   default=None),
         "max_realignments": max((r.realignments for r in results), default=None),
+        # The plant's collision-detection failures, each re-solved (sim/plant.py Plant._physics_step).
+        "recollided_steps": sum(r.recollided for r in results),
         "per_trial": [{"trial": r.index, "success": r.success, "time_s": r.insertion_time_s,
                        "peak_force_n": round(r.peak_force_n, 1), "peak_state": r.peak_state,
-                       "realignments": r.realignments, "probes": r.probes} for r in results],
+                       "realignments": r.realignments, "probes": r.probes, "recollided_steps": r.recollided}
+                      for r in results],
         "failures": [{"trial": r.index, "offset_mm": np.round(np.array(r.offset_m) * 1e3, 3).tolist(),
                       "tilt_deg": list(r.tilt_deg), "outcome": r.outcome, "reason": r.reason,
                       "true_depth_mm": round(r.true_depth_m * 1e3, 2)}

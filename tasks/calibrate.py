@@ -51,6 +51,7 @@ from cell.virtual_sensor import (
     OBSERVERS,
     Calibration,
     check_calibration,
+    contact_map,
     load_observer_model,
     model_identity,
     read_calibration_doc,
@@ -310,6 +311,7 @@ def calibrate(
     streams = [_stream(d, robot.n) for d in run_dirs]
     R = free_motion_variance(model, streams, dt)
     jac = JacobianMap(robot, np.asarray(vs.wrench_point, float), vs.singular_sigma, vs.max_damping)
+    tip = contact_map(vs, robot, R)
     holdout = set(cal.holdout)
     sel = [(s["phase"] == PHASES["load"]) & (s["steady"] > 0) for s in streams]
     is_test = np.concatenate([np.full(int(m.sum()), i in holdout) for i, m in enumerate(sel)])
@@ -333,6 +335,7 @@ def calibrate(
         w_jac = np.array([jac.map(q, t).wrench for q, t in zip(q_rows, tau_rows, strict=True)])
         bst = fit_learned_axes(q_rows[~is_test], tau_rows[~is_test], sensor[~is_test])
         boosters[kind] = bst
+        w_contact = np.array([tip.map(q, t).wrench for q, t in zip(q_rows[is_test], tau_rows[is_test], strict=True)])
         learned = LearnedMap(bst, jac, robot.n).predict_batch(q_rows[is_test], tau_rows[is_test])
         w_learned = w_jac[is_test].copy()
         w_learned[:, [LEARNED_INPUTS[a][0] for a in LEARNED_INPUTS]] = learned
@@ -344,13 +347,13 @@ def calibrate(
         fitted = LearnedMap(bst, jac, robot.n).predict_batch(q_rows[~is_test], tau_rows[~is_test])
         in_sample = {f"training_postures_{a}_mae": round(_mae(fitted[:, k], sensor[~is_test, LEARNED_INPUTS[a][0]]), 4)
                      for k, a in enumerate(LEARNED_INPUTS)}
-        for mapping, w in (("jacobian", w_jac[is_test]), ("learned", w_learned)):
+        for mapping, w in (("jacobian", w_jac[is_test]), ("contact", w_contact), ("learned", w_learned)):
             ref = sensor[is_test]
             r = {f"{a}_mae": round(_mae(w[:, i], ref[:, i]), 4) for i, a in enumerate(AXES)}
             r.update(fz_mae_n=r["fz_mae"], mx_mae_nm=r["mx_mae"], my_mae_nm=r["my_mae"])
             if mapping == "jacobian":
                 r["free_motion_fz_mae_n"] = round(_mae(free_w[:, 2], free_s[:, 2]), 4)
-            else:
+            elif mapping == "learned":
                 r.update(in_sample)
             routes[f"{kind}+{mapping}"] = r
             if f"{kind}+{mapping}" == chosen:

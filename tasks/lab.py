@@ -645,7 +645,7 @@ def bench_virtual_sensor(cfg: CellConfig, robot: RobotModel, model: LearnedModel
     The learned map here is fitted on the stream itself (the Jacobian's wrench as the target) with the
     calibration's tree settings: the timing depends on the trees' number and depth, not their values."""
     from cell.observer import make_observer
-    from cell.virtual_sensor import VirtualForceSource
+    from cell.virtual_sensor import VirtualForceSource, contact_map
     from cell.wrench_map import JacobianMap, LearnedMap, fit_learned_axes
     from drivers.interfaces import ArmState
 
@@ -660,13 +660,14 @@ def bench_virtual_sensor(cfg: CellConfig, robot: RobotModel, model: LearnedModel
     taus = np.array([obs.update(s) for s in states])
     wrench = np.array([jac.map(s.q, t).wrench for s, t in zip(states, taus, strict=True)])
     boosters = fit_learned_axes(stream.q[:n], taus, wrench)
+    maps = {"jacobian": jac, "learned": LearnedMap(boosters, jac, robot.n), "contact": contact_map(vs, robot, R)}
     warm = min(50, n // 10)
     out: dict[str, Any] = {}
     for kind in ("kalman", "momentum"):
-        for mapping in ("jacobian", "learned"):
+        for mapping, wmap in maps.items():
             o = make_observer(kind, model, dt, R, np.asarray(vs.process_noise_nm), vs.momentum_gain, vs.rebias_window_s,
                             vs.innovation_gate)
-            src = VirtualForceSource(o, jac if mapping == "jacobian" else LearnedMap(boosters, jac, robot.n))
+            src = VirtualForceSource(o, wmap)
             times = np.empty(n)
             for k, st in enumerate(states):
                 ns0 = time.perf_counter_ns()

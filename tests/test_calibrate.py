@@ -30,13 +30,15 @@ def test_calibration_reports_every_route_on_held_out_postures(vs):
     assert steps["train"]["done"] and steps["calibrate"]["done"]
     doc = json.loads((vs["cfg"].virtual_sensor.path("calibration", "wipe") / "calibration.json").read_text())
     rep = doc["report"]
-    assert set(rep["routes"]) == {"kalman+jacobian", "kalman+learned", "momentum+jacobian", "momentum+learned"}
+    routes = {f"{o}+{m}" for o in ("kalman", "momentum") for m in ("jacobian", "contact", "learned")}
+    assert set(rep["routes"]) == routes
     assert rep["holdout_postures"] == [5] and rep["heldout_samples"] > 100 and rep["train_samples"] > 300
     # The loads really were 0-75 N presses, and the configured route reads them well on a posture
     # it never saw (a loose bound: this is a small model on a reduced calibration).
     assert rep["sensor_fz_range_n"][1] > 40
     cfg_vs = vs["cfg"].virtual_sensor
-    assert rep["route"] == f"{cfg_vs.for_tool('wipe').observer}+{cfg_vs.mapping}" and rep["fz_mae_n"] < 3.0
+    wipe = cfg_vs.for_tool("wipe")
+    assert rep["route"] == f"{wipe.observer}+{wipe.mapping}" and rep["fz_mae_n"] < 3.0
     for r in rep["routes"].values():
         assert {"fz_mae_n", "mx_mae_nm", "my_mae_nm"} <= set(r)
     # The configured route's error split by posture: the re-bias offset and the noise about it

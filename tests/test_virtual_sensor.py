@@ -8,7 +8,7 @@ from filterpy.kalman import KalmanFilter
 
 from cell.observer import KalmanObserver
 from cell.virtual_sensor import VirtualForceSource, build_virtual_source
-from cell.wrench_map import JacobianMap, LearnedMap, fit_learned_axes
+from cell.wrench_map import ContactMap, JacobianMap, LearnedMap, fit_learned_axes
 from drivers.interfaces import ArmState
 from tests.vsfixtures import artefacts
 
@@ -102,6 +102,44 @@ def test_singular_pose_is_flagged_and_stays_bounded(robot):
     # Near (not at) the singularity the damping fades in smoothly: no jump between neighbours.
     near = [jac.map(np.array([0.1, 0.2, 1.5, 0.1, a, 0.2]), tau).wrench for a in (0.02, 0.021)]
     assert np.linalg.norm(near[0] - near[1]) < 5.0
+
+
+def _contact_map(robot, free_moment_nm):
+    var = np.array([0.5, 0.6, 0.3, 0.03, 0.03, 0.09])  # a calibration's residual variances [N·m]^2
+    return ContactMap(robot, np.array([0.0, 0.0, 0.035]), robot.tool.tcp_offset, free_moment_nm, var), var
+
+
+def test_contact_map_reads_a_tip_force_exactly_and_model_errors_as_less_moment(robot):
+    cm, var = _contact_map(robot, 0.3)
+    jac = JacobianMap(robot, np.array([0.0, 0.0, 0.035]))
+    q = np.array([0.1, 0.3, 1.6, -0.3, 1.5, 0.2])
+    J = jac.jacobian(q)
+    r = robot.tool.tcp_offset - np.array([0.0, 0.0, 0.035])
+    F = np.array([4.0, -3.0, 20.0])
+    tip = np.concatenate([F, np.cross(r, F)])  # a force at the TCP, read at the sensor's face
+    assert np.allclose(cm.map(q, J.T @ tip).wrench, tip, atol=1e-6)
+    # Joint-torque errors of the model's size: the exact inverse turns them into moments of their own,
+    # the contact prior into (mostly) the force that would explain them.
+    rng = np.random.default_rng(3)
+    errs = rng.normal(size=(300, 6)) * np.sqrt(var)
+    m_jac = np.array([jac.map(q, e).wrench[3:5] for e in errs])
+    m_cm = np.array([cm.map(q, e).wrench[3:5] for e in errs])
+    assert np.mean(np.abs(m_cm)) < 0.5 * np.mean(np.abs(m_jac))
+    # A moment nothing at the tip explains is shrunk by the prior, and passes once the prior is wide.
+    free = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+    assert 0.0 < cm.map(q, J.T @ free).wrench[4] < 0.9
+    wide, _ = _contact_map(robot, 100.0)
+    assert np.allclose(wide.map(q, J.T @ free).wrench, free, atol=1e-3)
+
+
+def test_contact_map_stays_bounded_at_a_singularity(robot):
+    cm, _ = _contact_map(robot, 0.3)
+    tau = np.array([0.3, -0.4, 0.2, 0.15, -0.1, 0.12])
+    for q5 in (0.0, 1e-4):
+        m = cm.map(np.array([0.1, 0.2, 1.5, 0.1, q5, 0.2]), tau)
+        assert m.ill_conditioned and np.all(np.isfinite(m.wrench)) and np.linalg.norm(m.wrench) < 25.0
+    with pytest.raises(ValueError, match="free_moment_nm"):
+        _contact_map(robot, 0.0)
 
 
 def test_learned_map_serving_matches_xgboost(robot):
@@ -245,6 +283,7 @@ def test_each_tool_gets_its_configured_settings():
     assert (wipe.observer, wipe.zero_at_tare) == ("momentum", True)
     assert (peg.observer, peg.zero_at_tare) == ("kalman", False)
     assert peg.process_noise_nm[:3] == [0.05] * 3 and wipe.process_noise_nm == vs.process_noise_nm
+    assert (wipe.mapping, peg.mapping) == ("jacobian", "contact")  # the peg is touched at its tip
     assert peg.momentum_gain == vs.momentum_gain and peg.data_dir == vs.data_dir  # the rest is shared
     one = load_dataclass(VirtualSensorConfig, {"observer": "momentum", "by_tool": {"peg": {"observer": "kalman"}}},
                          "vs")
@@ -254,7 +293,9 @@ def test_each_tool_gets_its_configured_settings():
                        ({"peg": {"observer": "luenberger"}}, r"vs\.by_tool\.peg\.observer"),
                        ({"peg": {"colour": "red"}}, r"vs\.by_tool\.peg.*unknown key 'colour'"),
                        ({"peg": {"process_noise_nm": [0.1, 0.1]}}, r"vs\.by_tool\.peg\.process_noise_nm"),
-                       ({"peg": {"innovation_gate": -1.0}}, r"vs\.by_tool\.peg\.innovation_gate")):
+                       ({"peg": {"innovation_gate": -1.0}}, r"vs\.by_tool\.peg\.innovation_gate"),
+                       ({"peg": {"mapping": "nearest"}}, r"vs\.by_tool\.peg\.mapping"),
+                       ({"peg": {"free_moment_nm": 0.0}}, r"vs\.by_tool\.peg\.free_moment_nm")):
         with pytest.raises(ConfigError, match=match):
             load_dataclass(VirtualSensorConfig, {"by_tool": bad}, "vs")
 
