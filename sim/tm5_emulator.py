@@ -491,7 +491,7 @@ class TM5Emulator:
             prog.stalled_cycles += 1
 
         if command == Command.STOP:
-            self._hold("host command STOP")
+            self._hold("host command STOP", asked=True)
         elif command == Command.TRACK:
             if prog.held or prog.watchdog:
                 return  # latched: targets are ignored until the host acknowledges with IDLE
@@ -552,10 +552,11 @@ class TM5Emulator:
             del prog.received[k]
         self.plant.set_target(target)
 
-    def _hold(self, why: str, *, watchdog: bool = False) -> None:
+    def _hold(self, why: str, *, watchdog: bool = False, asked: bool = False) -> None:
         prog = self.program
         if not (prog.held or prog.watchdog):
-            log.info("TM5 emulator robot-side program: hold (%s)", why)
+            # A hold the host did not ask for is news to it (the host sees only the protective-stop flag).
+            log.log(logging.INFO if asked else logging.WARNING, "TM5 emulator robot-side program: hold (%s)", why)
             self.plant.hold()
         prog.executing = False
         if watchdog:
