@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import socket
 import threading
@@ -403,7 +404,8 @@ def test_modbus_exception_reply_is_protocol_error(arm: TM5ModbusArm, emulator: T
 
 @pytest.mark.timeout(20)
 def test_robot_watchdog_holds_plant_when_host_goes_quiet(arm: TM5ModbusArm, emulator: TM5Emulator,
-                                                         plant: FakePlant) -> None:
+                                                         plant: FakePlant, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO, logger="sim.tm5_emulator")
     arm.arm()
     q = arm.read_state().q
     for i in range(10):
@@ -411,6 +413,8 @@ def test_robot_watchdog_holds_plant_when_host_goes_quiet(arm: TM5ModbusArm, emul
         time.sleep(DT)
     assert plant.hold_calls == 0
     wait_for(lambda: plant.hold_calls == 1, timeout=0.5, what="the robot-side watchdog")  # 6 cycles = 48 ms
+    # The emulator says why at warning level: the host sees only the protective-stop flag.
+    assert any(r.levelno == logging.WARNING and "heartbeat stalled" in r.getMessage() for r in caplog.records)
     s = arm.read_state()
     assert s.status.protective_stop and not s.status.ok
     assert arm.robot_side is not None and RobotFlags.WATCHDOG in arm.robot_side.flags
