@@ -165,7 +165,8 @@ class CalibrationConfig:
 
 @dataclass
 class ToolSensorSettings:
-    """One tool's values of the virtual sensor's observer settings; unset ones are `virtual_sensor`'s."""
+    """One tool's values of the virtual sensor's settings (observer and mapping); unset ones are
+    `virtual_sensor`'s."""
 
     observer: Literal["kalman", "momentum"] | None = None
     process_noise_nm: list[float] | None = None

@@ -221,18 +221,19 @@ def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: L
                 observer: str, mapping: str, where: str = "calibration") -> VirtualForceSource:
     obs = make_observer(observer, model, dt, np.asarray(cal.measurement_var), np.asarray(cfg.process_noise_nm),
                         cfg.momentum_gain, cfg.rebias_window_s, cfg.innovation_gate)
-    jac = JacobianMap(robot, np.asarray(cfg.wrench_point, float), cfg.singular_sigma, cfg.max_damping)
-    if mapping == "jacobian":
-        return VirtualForceSource(obs, jac, zero_at_tare=cfg.zero_at_tare)
+    wmap: JacobianMap | LearnedMap
     if mapping == "contact":
-        return VirtualForceSource(obs, contact_map(cfg, robot, np.asarray(cal.measurement_var)),
-                                  zero_at_tare=cfg.zero_at_tare)
-    if mapping == "learned":
-        boosters = cal.boosters.get(observer)
-        if not boosters or any(a not in boosters for a in LEARNED_INPUTS):
-            raise DataError(f"{where}: no learned map for the {observer} observer; recalibrate")
-        return VirtualForceSource(obs, LearnedMap(boosters, jac, robot.n), zero_at_tare=cfg.zero_at_tare)
-    raise DataError(f"unknown wrench mapping {mapping!r} (jacobian, learned or contact)")
+        wmap = contact_map(cfg, robot, np.asarray(cal.measurement_var))
+    elif mapping in ("jacobian", "learned"):
+        wmap = JacobianMap(robot, np.asarray(cfg.wrench_point, float), cfg.singular_sigma, cfg.max_damping)
+        if mapping == "learned":
+            boosters = cal.boosters.get(observer)
+            if not boosters or any(a not in boosters for a in LEARNED_INPUTS):
+                raise DataError(f"{where}: no learned map for the {observer} observer; recalibrate")
+            wmap = LearnedMap(boosters, wmap, robot.n)
+    else:
+        raise DataError(f"unknown wrench mapping {mapping!r} (jacobian, learned or contact)")
+    return VirtualForceSource(obs, wmap, zero_at_tare=cfg.zero_at_tare)
 
 
 def contact_map(cfg: VirtualSensorConfig, robot: RobotModel, joint_var: np.ndarray) -> ContactMap:

@@ -253,8 +253,8 @@ class Plant:
         m, d = self.model, self.data
         mujoco.mj_getState(m, d, self._saved, STEP_STATE)
         mujoco.mj_step(m, d)
-        if d.ncon and float(np.min(d.contact.dist[:d.ncon])) < -MAX_CONTACT_DEPTH_M:
-            depth = -float(np.min(d.contact.dist[:d.ncon]))
+        depth = -float(np.min(d.contact.dist[:d.ncon])) if d.ncon else 0.0
+        if depth > MAX_CONTACT_DEPTH_M:
             mujoco.mj_setState(m, d, self._saved, STEP_STATE)
             tol = m.opt.ccd_tolerance
             m.opt.ccd_tolerance = RECOLLIDE_TOLERANCE

@@ -153,7 +153,8 @@ def test_wipe_runs_with_the_virtual_sensor_in_the_loop(vs, tmp_path, capsys):
     assert main(["-q", "run", "wipe", "--config", str(path), "--json"]) == 0
     s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert s["force_source"] == "virtual"
-    assert s["virtual_sensor"] == f"{cfg.virtual_sensor.for_tool('wipe').observer}+{cfg.virtual_sensor.mapping}"
+    wipe = cfg.virtual_sensor.for_tool("wipe")
+    assert s["virtual_sensor"] == f"{wipe.observer}+{wipe.mapping}"
     assert s["outcome"] == "done" and not s["safety_stop"]
     # Virtual against measured over the wiping samples (small model: loose bounds; the figures of the
     # shipped artefacts are in the README).

@@ -217,8 +217,8 @@ class TestPegFixture:
 def test_a_step_with_a_contact_deeper_than_any_real_one_is_taken_again_precisely(cfg):
     # MuJoCo's convex collider now and then reports a phantom contact as deep as a fixture box is wide;
     # the plant takes such a step again from the state before it with a tight CCD tolerance.  A peg
-    # started 3 mm inside the fixture's face stands in for the failure here (a real contact there
-    # stays within solimp's 0.5 mm).
+    # started 3 mm inside the fixture's face stands in for the failure here (real contacts stay within
+    # 0.05 mm; the bound is MAX_CONTACT_DEPTH_M, 0.1 mm).
     from cell.robot import load_robot
     from sim import plant as plant_mod
 
