@@ -352,7 +352,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             raise ConfigError("bench model needs --data DATASET.yaml (make one with main.py collect)")
         out = lab.bench_model(_lab_config(args), Path(args.data), Path(args.model) if args.model else None,
                               train_samples=args.train_samples, fit_samples=args.fit_samples,
-                              calls=args.calls, nthread=args.nthread)
+                              calls=args.calls, nthread=args.nthread, robot=args.robot)
     elif args.what == "plant":
         from sim.characterise import characterise_plant
 
@@ -442,7 +442,7 @@ def cmd_collect(args: argparse.Namespace) -> int:
     out = lab.collect(cfg, opener, Path(args.out), samples=args.samples, family=args.family,
                       fourier_share=args.fourier_share, test_trajectories=args.test_trajectories,
                       test_repeats=args.test_repeats, test_moves=args.test_moves,
-                      excitation=args.excitation, seed=args.plan_seed)
+                      excitation=args.excitation, seed=args.plan_seed, robot=args.robot)
     _emit(out, args.json)
     return 0
 
@@ -452,7 +452,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     out = lab.train(_lab_config(args), Path(args.data), Path(args.out), kind=args.model, samples=args.samples,
                     window=args.window, grouping=args.grouping, derivatives=args.derivatives,
-                    nthread=args.nthread, seed=args.seed or 0)
+                    nthread=args.nthread, seed=args.seed or 0, robot=args.robot)
     _emit(out, args.json)
     return 0
 
@@ -463,7 +463,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     curve = None if args.no_curve else [int(v) for v in args.curve.split(",")] if args.curve else lab.DEFAULT_CURVE
     out = lab.evaluate(_lab_config(args), Path(args.data), Path(args.out), train_samples=args.train_samples,
                        large_samples=args.large_samples, curve=curve, nthread=args.nthread, seed=args.seed or 0,
-                       max_trees=args.max_trees)
+                       max_trees=args.max_trees, robot=args.robot)
+    _emit(out, args.json)
+    return 0
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from tasks.import_ur10e import import_ur10e
+
+    out = import_ur10e(Path(args.out), train=args.train, test=args.test, loaded=args.loaded,
+                       max_gap_s=args.max_gap_s, payload_kg=args.payload_kg)
     _emit(out, args.json)
     return 0
 
@@ -514,6 +523,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     sub = p.add_subparsers(dest="command", required=True)
+
+    def robot_option(sp: argparse.ArgumentParser, what: str = "") -> None:
+        sp.add_argument("--robot", default="tm5-700",
+                        help=f"{what}robot by name (config/robots/<name>/; default tm5-700, the cell's arm)")
 
     def common(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--config", type=Path, default=None, help="cell config YAML (default config/cell.yaml)")
@@ -577,6 +590,7 @@ def build_parser() -> argparse.ArgumentParser:
     co.add_argument("--test-moves", type=int, default=4)
     co.add_argument("--excitation", default=None, help="excitation config YAML")
     co.add_argument("--plant", default=None, help="plant profile YAML (sim cells)")
+    robot_option(co, "only tm5-700 (the simulated plant's arm): ")
     common(co)
     co.set_defaults(func=cmd_collect)
 
@@ -589,6 +603,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--grouping", choices=("own", "paper", "per_joint", "full"), default=None)
     tr.add_argument("--derivatives", choices=("zero_phase", "causal"), default="zero_phase")
     tr.add_argument("--nthread", type=int, default=2)
+    robot_option(tr, "the dataset's ")
     common(tr)
     tr.set_defaults(func=cmd_train)
 
@@ -602,8 +617,25 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--max-trees", type=int, default=None)
     ev.add_argument("--nthread", type=int, default=2)
     ev.add_argument("--plant", default=None, help="plant profile whose noise floor the report cites")
+    robot_option(ev, "the dataset's ")
     common(ev)
     ev.set_defaults(func=cmd_evaluate)
+
+    im = sub.add_parser("import", help="turn another robot's logs into a dataset (the public UR10e CSV logs)")
+    im.add_argument("source", choices=("ur10e",), help="whose logs: ur10e (../shared/data/ur10e/README.md)")
+    im.add_argument("--train", nargs="+", action="extend", metavar="PATH",
+                    help="CSV files or folders for training (default: the unloaded harmonic runs)")
+    im.add_argument("--test", nargs="+", action="extend", metavar="PATH",
+                    help="CSV files or folders for testing (default: the joint-wise runs)")
+    im.add_argument("--loaded", nargs="+", action="extend", metavar="PATH",
+                    help="CSV files or folders recorded with the payload (default: the loaded harmonic runs)")
+    im.add_argument("--out", required=True, help="dataset folder (e.g. artifacts/data/ur10e)")
+    im.add_argument("--max-gap-s", type=float, default=0.05,
+                    help="a time step longer than this starts a new trajectory (s)")
+    im.add_argument("--payload-kg", type=float, default=2.805,
+                    help="payload of the --loaded logs (default: the published 2.805 kg of *harm50secLoad)")
+    common(im)
+    im.set_defaults(func=cmd_import)
 
     em = sub.add_parser("emulate", help="serve a device emulator on this machine until Ctrl+C")
     em.add_argument("device", choices=("arm", "sensor", "cell"),
@@ -639,6 +671,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--fit-samples", type=int, default=500_000, help="samples for the timed XGBoost fit (bench model)")
     b.add_argument("--nthread", type=int, default=2)
     b.add_argument("--plant", default=None, help="plant profile YAML (bench plant)")
+    robot_option(b, "bench model: the dataset's ")
     common(b)
     b.set_defaults(func=cmd_bench)
     return p

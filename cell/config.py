@@ -25,7 +25,7 @@ def resolve(path: str, base: Path = CONFIG_DIR) -> Path:
 class RobotConfig:
     """The controller's nominal model of the arm and its tool."""
 
-    urdf: str = "robots/tm5-700.urdf"
+    urdf: str = "robots/tm5-700/tm5-700.urdf"
     home: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.5708, 0.0, 1.5708, 0.0])  # rad
     # Nominal tool as configured on the pendant: sensor + tool mass, COM and TCP in the flange frame.
     tool_mass: float = 1.4

@@ -3,9 +3,10 @@
 Format (documented in docs/dataset.md):
 
 * one or more Parquet files (or folders of Parquet parts, such as a run's `log/`) with columns
-  `t, q1..qn, tau1..taun` and optionally `dq1..dqn` and `traj` (trajectory id); extra columns are
-  ignored, so the control loop's step logs are valid datasets as they are;
-* a YAML manifest naming which files are for training and which for testing.
+  `t, q1..qn, tau1..taun` and optionally `dq1..dqn`, `traj` (trajectory id) and the payload columns
+  `payload_kg`, `payload_com_x..z`; extra columns are ignored, so the control loop's step logs are valid
+  datasets as they are;
+* a YAML manifest naming which files are for training, for testing and (optionally) carry a payload.
 
 Derivatives: `zero_phase` (Butterworth `filtfilt`, for offline training and evaluation) or `causal`
 (`CausalDerivatives`, the very class the controller runs once per sample).
@@ -31,7 +32,9 @@ from drivers.errors import DataError
 log = logging.getLogger(__name__)
 
 DerivativeMode = Literal["zero_phase", "causal"]
-GAP_FACTOR = 1.5  # a time step longer than this x the median step starts a new trajectory
+Split = Literal["train", "test", "loaded"]
+GAP_FACTOR = 1.5  # a time step longer than this x the median step starts a new trajectory (no max_gap_s)
+PAYLOAD_COM = ("payload_com_x", "payload_com_y", "payload_com_z")  # m, flange frame
 
 
 # ----------------------------------------------------------------------------------------- config
@@ -53,9 +56,12 @@ class DatasetManifest:
 
     train: list[str] = field(default_factory=list)
     test: list[str] = field(default_factory=list)
+    loaded: list[str] = field(default_factory=list)  # files recorded with a payload (payload-transfer check)
     joints: int | None = None  # checked against the URDF when given
-    robot: str = ""  # robot name from the URDF, informational
-    period_s: float | None = None  # nominal sample period, informational
+    robot: str = ""  # robot name from the URDF; a loader asked for another robot refuses the dataset
+    period_s: float | None = None  # nominal (median) sample period, informational
+    # Gap rule: a time step longer than this starts a new trajectory; unset: longer than 1.5 x the median step.
+    max_gap_s: float | None = None
     description: str = ""
     filter: FilterConfig = field(default_factory=FilterConfig)
 
@@ -63,13 +69,15 @@ class DatasetManifest:
         require(bool(self.train) or bool(self.test), join(where, "train"), "or test must list at least one file")
         if self.joints is not None:
             require(self.joints >= 1, join(where, "joints"), "must be >= 1")
+        if self.max_gap_s is not None:
+            require(self.max_gap_s > 0, join(where, "max_gap_s"), f"must be > 0 s, got {self.max_gap_s}")
 
 
 def load_manifest(path: Path) -> DatasetManifest:
     return load_dataclass(DatasetManifest, read_yaml(Path(path)), f"{path}:")
 
 
-def manifest_files(path: Path, split: Literal["train", "test"]) -> list[Path]:
+def manifest_files(path: Path, split: Split) -> list[Path]:
     man = load_manifest(path)
     base = Path(path).parent
     return [p if p.is_absolute() else base / p for p in map(Path, getattr(man, split))]
@@ -86,6 +94,7 @@ class Trajectory:
     tau: np.ndarray
     dq: np.ndarray | None = None
     segment: np.ndarray | None = None  # optional per-row segment (move) id, for subsampling
+    payload: tuple[float, np.ndarray | None] | None = None  # (kg, COM (3,) in the flange frame or unknown)
 
     @property
     def n(self) -> int:
@@ -98,7 +107,7 @@ class Trajectory:
         return Trajectory(
             name=name or self.name, t=self.t[a:b], q=self.q[a:b], tau=self.tau[a:b],
             dq=None if self.dq is None else self.dq[a:b],
-            segment=None if self.segment is None else self.segment[a:b],
+            segment=None if self.segment is None else self.segment[a:b], payload=self.payload,
         )
 
 
@@ -109,7 +118,7 @@ def _joint_count(columns: Sequence[str], prefix: str) -> int:
     return n
 
 
-def _column(table: pa.Table, name: str, file: Path) -> np.ndarray:
+def _column(table: pa.Table, name: str, file: Path, allow_nan: bool = False) -> np.ndarray:
     try:
         arr = table.column(name).to_numpy(zero_copy_only=False)
     except KeyError:
@@ -118,7 +127,7 @@ def _column(table: pa.Table, name: str, file: Path) -> np.ndarray:
         values = np.asarray(arr, dtype=float)
     except (TypeError, ValueError):
         raise DataError(f"{file}: column '{name}' is not numeric") from None
-    bad = ~np.isfinite(values)
+    bad = np.isinf(values) if allow_nan else ~np.isfinite(values)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
         raise DataError(
@@ -138,11 +147,49 @@ def read_table(path: Path) -> pa.Table:
         raise DataError(f"{path}: not a readable Parquet file or folder ({str(exc).splitlines()[0]})") from None
 
 
-def load_trajectories(path: Path, n_joints: int | None = None) -> list[Trajectory]:
-    """Read and validate one dataset file; split it into trajectories by `traj` and by time gaps.
+def _payload_columns(table: pa.Table, path: Path) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(payload_kg (N,), COM (N, 3) with NaN where unknown) when the file has them, else None."""
+    cols = table.column_names
+    present = [c for c in PAYLOAD_COM if c in cols]
+    if "payload_kg" not in cols:
+        if present:
+            raise DataError(f"{path}: column '{present[0]}' without column 'payload_kg' (the payload's mass in kg)")
+        return None, None
+    kg = _column(table, "payload_kg", path)
+    if np.any(kg < 0):
+        raise DataError(f"{path}: column 'payload_kg' is negative at row {int(np.flatnonzero(kg < 0)[0])}")
+    if not present:
+        return kg, None
+    if len(present) < 3:
+        missing = next(c for c in PAYLOAD_COM if c not in cols)
+        raise DataError(f"{path}: missing column '{missing}' (give all of payload_com_x..z or none)")
+    return kg, np.column_stack([_column(table, c, path, allow_nan=True) for c in PAYLOAD_COM])
+
+
+def _payload(kg: np.ndarray | None, com: np.ndarray | None, a: int, b: int, path: Path,
+             tid: int) -> tuple[float, np.ndarray | None] | None:
+    """One trajectory's payload (rows a..b-1): constant within it; an all-NaN COM is unknown (None)."""
+    if kg is None:
+        return None
+    if np.any(kg[a:b] != kg[a]):
+        raise DataError(f"{path}: column 'payload_kg' changes within trajectory {tid} (rows {a}..{b - 1}); "
+                        "a payload is constant per trajectory")
+    if com is None or np.isnan(com[a:b]).all():
+        return float(kg[a]), None
+    rows = com[a:b]
+    if np.isnan(rows).any() or np.any(rows != rows[0]):
+        raise DataError(f"{path}: columns 'payload_com_x..z' change within trajectory {tid} (rows {a}..{b - 1}); "
+                        "a payload is constant per trajectory (all NaN when its COM is unknown)")
+    return float(kg[a]), rows[0].copy()
+
+
+def load_trajectories(path: Path, n_joints: int | None = None, max_gap_s: float | None = None) -> list[Trajectory]:
+    """Read and validate one dataset file; split it into trajectories by `traj` and by time gaps
+    (a step longer than `max_gap_s`, or without it longer than GAP_FACTOR x the trajectory's median step).
 
     Raises DataError naming the file and the column for: missing columns, NaN/inf values,
-    non-increasing time, and a joint count different from `n_joints` (the URDF's).
+    non-increasing time, a joint count different from `n_joints` (the URDF's), and a payload that
+    changes within a trajectory.
     """
     path = Path(path)
     table = read_table(path)
@@ -174,6 +221,7 @@ def load_trajectories(path: Path, n_joints: int | None = None) -> list[Trajector
     dq = np.column_stack([_column(table, f"dq{i}", path) for i in range(1, n + 1)]) if ndq else None
     traj_id = _column(table, "traj", path).astype(np.int64) if "traj" in cols else np.zeros(len(t), np.int64)
     segment = _column(table, "segment", path).astype(np.int64) if "segment" in cols else None
+    payload_kg, payload_com = _payload_columns(table, path)
 
     out: list[Trajectory] = []
     # Rows of one trajectory id are contiguous in a well-formed file; time increases within each.
@@ -192,8 +240,11 @@ def load_trajectories(path: Path, n_joints: int | None = None) -> list[Trajector
                 f"{path}: column 't' is not strictly increasing at row {k} (t={t[k]:.6g} s after {t[k - 1]:.6g} s)"
             )
         # A gap (a dropped chunk, concatenated runs) breaks the trajectory: derivatives must not span it.
-        step = float(np.median(dt)) if dt.size else 0.0
-        gaps = np.flatnonzero(dt > GAP_FACTOR * step) + 1 if step > 0 else np.array([], int)
+        if max_gap_s is not None:
+            gaps = np.flatnonzero(dt > max_gap_s) + 1
+        else:
+            step = float(np.median(dt)) if dt.size else 0.0
+            gaps = np.flatnonzero(dt > GAP_FACTOR * step) + 1 if step > 0 else np.array([], int)
         pieces = np.concatenate([[0], gaps, [b - a]]) + a
         for k, (c, d) in enumerate(zip(pieces[:-1], pieces[1:], strict=True)):
             if d - c < 2:
@@ -204,12 +255,17 @@ def load_trajectories(path: Path, n_joints: int | None = None) -> list[Trajector
             out.append(Trajectory(
                 name=name, t=t[c:d], q=q[c:d], tau=tau[c:d], dq=None if dq is None else dq[c:d],
                 segment=None if segment is None else segment[c:d],
+                payload=_payload(payload_kg, payload_com, c, d, path, tid),
             ))
     return out
 
 
-def load_split(manifest: Path, split: Literal["train", "test"], n_joints: int | None = None) -> list[Trajectory]:
+def load_split(manifest: Path, split: Split, n_joints: int | None = None,
+               robot: str | None = None) -> list[Trajectory]:
+    """A manifest's split as trajectories; refused when the manifest names another `robot` than asked for."""
     man = load_manifest(manifest)
+    if robot and man.robot and man.robot != robot:
+        raise DataError(f"{manifest}: the dataset is of robot '{man.robot}' but --robot is '{robot}'")
     if n_joints is not None and man.joints is not None and man.joints != n_joints:
         raise DataError(f"{manifest}: joints is {man.joints} but the URDF has {n_joints} joints")
     files = manifest_files(manifest, split)
@@ -217,7 +273,7 @@ def load_split(manifest: Path, split: Literal["train", "test"], n_joints: int | 
         raise DataError(f"{manifest}: lists no {split} files")
     out: list[Trajectory] = []
     for f in files:
-        out.extend(load_trajectories(f, n_joints))
+        out.extend(load_trajectories(f, n_joints, man.max_gap_s))
     return out
 
 

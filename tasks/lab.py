@@ -53,6 +53,7 @@ from cell.excitation import (
 from cell.loop import ControlLoop
 from cell.recorder import Recorder, new_run_dir, read_log
 from cell.robot import RobotModel, load_robot
+from cell.robots import load_robot_spec, robot_model
 from cell.safety import SafetyMonitor
 from drivers.errors import ConfigError, DataError
 from tasks.collect import PlaybackTask
@@ -63,9 +64,15 @@ MODEL_KINDS = ("P1", "P2", "D", "H1", "H2", "H3")
 DEFAULT_CURVE = (24_000, 64_000, 128_000, 256_000, 500_000)
 
 
-def lab_robot(cfg: CellConfig) -> RobotModel:
-    """The nominal model the lab identifies against: the URDF plus the nominal (wiping) tool."""
-    return load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
+CELL_ROBOT = "tm5-700"  # the cell's arm (and the simulated plant's): the lab's default --robot
+
+
+def lab_robot(cfg: CellConfig, robot: str = CELL_ROBOT) -> RobotModel:
+    """The nominal model the lab identifies against: for the cell's arm the cell config's URDF plus the
+    nominal (wiping) tool; for another robot (`config/robots/<name>/`) its URDF with no tool."""
+    if robot == CELL_ROBOT:
+        return load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
+    return robot_model(load_robot_spec(robot))
 
 
 # ========================================================================================= collect
@@ -84,6 +91,7 @@ def collect(
     slow_share: float = 0.0,
     sweep_share: float = 0.0,
     sweep_centre: np.ndarray | None = None,
+    robot: str = CELL_ROBOT,
 ) -> dict[str, Any]:
     """Run training and test trajectories on a cell through the control loop (safety, recording) and
     write a dataset: `<out>/train.parquet`, `<out>/test.parquet`, `<out>/dataset.yaml`, `<out>/collect.json`.
@@ -99,6 +107,9 @@ def collect(
          [--test-trajectories 6] [--test-repeats 5] [--test-moves 4]
          [--excitation config/excitation.yaml] [--plant config/plants/alt.yaml] [--seed 0] [--json]
     """
+    if robot != CELL_ROBOT:
+        raise ConfigError(f"collect --robot {robot}: the simulated plant is a {CELL_ROBOT}; "
+                          f"import another robot's logs instead (main.py import ur10e)")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     robot = lab_robot(cfg)
@@ -316,9 +327,10 @@ class TrainOptions:
 def load_samples(dataset: Path, split: Literal["train", "test"], robot: RobotModel, mode: DerivativeMode = "zero_phase",
                  samples: int | None = None, seed: int = 0) -> tuple[Samples, str]:
     """A split's trajectories stacked with derivatives (the manifest's filter), optionally cut to
-    `samples` rows of whole segments; and the content hash of its files."""
+    `samples` rows of whole segments; and the content hash of its files.  A dataset of another robot
+    than `robot` (the manifest's `robot` against the URDF's robot name) is refused."""
     man = load_manifest(dataset)
-    trajs = load_split(dataset, split, robot.n)
+    trajs = load_split(dataset, split, robot.n, robot.model.name)
     s = stack(trajs, mode, man.filter)
     if samples is not None:
         s = subsample_segments(s, samples, seed)
@@ -359,6 +371,7 @@ def train(
     derivatives: str = "zero_phase",
     nthread: int = 2,
     seed: int = 0,
+    robot: str = CELL_ROBOT,
 ) -> dict[str, Any]:
     """Fit one model on the training split of a dataset and save it as an artefact folder.
 
@@ -367,11 +380,11 @@ def train(
 
     CLI: main.py train --data artifacts/data/default/dataset.yaml --model H1 --out artifacts/models/h1
          [--samples 24000] [--window 1] [--grouping own|paper|per_joint|full]
-         [--derivatives zero_phase|causal] [--nthread 2] [--seed 0] [--json]
+         [--derivatives zero_phase|causal] [--nthread 2] [--seed 0] [--robot tm5-700] [--json]
     """
     if derivatives not in ("zero_phase", "causal"):
         raise ConfigError(f"--derivatives {derivatives}: unknown (zero_phase or causal)")
-    robot = lab_robot(cfg)
+    robot = lab_robot(cfg, robot)
     opts = TrainOptions(derivatives=cast(DerivativeMode, derivatives), nthread=nthread, seed=seed)
     opts = opts.override(window=window, grouping=grouping)
     t0 = time.perf_counter()
@@ -434,6 +447,7 @@ def evaluate(
     save_models: bool = True,
     paper_variants: bool = True,
     max_trees: int | None = None,
+    robot: str = CELL_ROBOT,
 ) -> dict[str, Any]:
     """Fit P1, P2, D, H1, H2, H3 on `train_samples` of the training split (whole moves; the hybrids'
     P2 identified on the same samples), D also on `large_samples` (D_large), and as variants H2 on
@@ -452,12 +466,12 @@ def evaluate(
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    robot = lab_robot(cfg)
+    robot = lab_robot(cfg, robot)
     opts = TrainOptions(nthread=nthread, seed=seed, max_trees=max_trees)
     dataset = Path(dataset)
     everything, sha = load_samples(dataset, "train", robot)
     man = load_manifest(dataset)
-    tests = [stack([t], "zero_phase", man.filter) for t in load_split(dataset, "test", robot.n)]
+    tests = [stack([t], "zero_phase", man.filter) for t in load_split(dataset, "test", robot.n, robot.model.name)]
     small = subsample_segments(everything, train_samples, seed)
     large = subsample_segments(everything, large_samples, seed)
     log.info("evaluate: %d training samples available, %d test trajectories (%d samples)",
@@ -545,6 +559,7 @@ def bench_model(
     calls: int = 5000,
     nthread: int = 2,
     seed: int = 0,
+    robot: str = CELL_ROBOT,
 ) -> dict[str, Any]:
     """Serving figures of the hybrid model (H1, joints 1-5, physics plus residual):
 
@@ -559,9 +574,10 @@ def bench_model(
     dataset's training split with causal derivatives (what the controller would be given).
 
     CLI: main.py bench model --data artifacts/data/default/dataset.yaml [--model artifacts/models/h1]
-         [--calls 5000] [--fit-samples 500000] [--train-samples 24000] [--nthread 2] [--seed 0] [--json]
+         [--calls 5000] [--fit-samples 500000] [--train-samples 24000] [--nthread 2] [--seed 0]
+         [--robot tm5-700] [--json]
     """
-    robot = lab_robot(cfg)
+    robot = lab_robot(cfg, robot)
     dataset = Path(dataset)
     opts = TrainOptions(nthread=nthread, seed=seed, derivatives="causal")
     if model_path is not None:

@@ -30,7 +30,7 @@ def frictionless(profile: PlantProfile) -> PlantProfile:
 
 def true_gravity(profile: PlantProfile, q: np.ndarray) -> np.ndarray:
     """Gravity of the profile's true arm, computed independently of MuJoCo with Pinocchio."""
-    model = pin.buildModelFromUrdf(str(resolve("robots/tm5-700.urdf")))
+    model = pin.buildModelFromUrdf(str(resolve("robots/tm5-700/tm5-700.urdf")))
     for j in range(1, 7):
         nominal = model.inertias[j]
         com = profile.inertial.com.get(LINKS[j - 1], list(nominal.lever))
@@ -74,7 +74,7 @@ def profile() -> PlantProfile:
 @pytest.mark.parametrize("q", POSES)
 def test_static_torque_is_the_profiles_true_gravity_not_the_nominal(profile, robot, q):
     q = np.asarray(q)
-    plant = Plant(resolve("robots/tm5-700.urdf"), frictionless(profile), SceneConfig(kind="free"), q)
+    plant = Plant(resolve("robots/tm5-700/tm5-700.urdf"), frictionless(profile), SceneConfig(kind="free"), q)
     measured = settle(plant, q)
     np.testing.assert_allclose(measured, true_gravity(profile, q), atol=0.05)
     # ... and the nominal model misses it by what the COM offsets and mass deviations imply.
@@ -85,7 +85,7 @@ def test_static_torque_is_the_profiles_true_gravity_not_the_nominal(profile, rob
 def test_arm_horizontal_gravity_is_near_the_mesh_centroid_estimate(profile):
     q = np.array(POSES[0])
     g = true_gravity(replace(profile, tool=replace(profile.tool, wipe_mass=1e-9)), q)
-    plant = Plant(resolve("robots/tm5-700.urdf"), frictionless(profile), SceneConfig(kind="free"), q)
+    plant = Plant(resolve("robots/tm5-700/tm5-700.urdf"), frictionless(profile), SceneConfig(kind="free"), q)
     measured = settle(plant, q)
     # The fact sheet estimates -51.1 N·m at J2 for the bare arm with centroid COMs; the true arm here
     # also has mass deviations and a 1.45 kg tool, so J2 is larger in magnitude but in that family.
@@ -94,7 +94,7 @@ def test_arm_horizontal_gravity_is_near_the_mesh_centroid_estimate(profile):
 
 def test_static_friction_holds_within_its_band(profile):
     q = np.array(POSES[1])
-    plant = Plant(resolve("robots/tm5-700.urdf"), profile, SceneConfig(kind="free"), q)
+    plant = Plant(resolve("robots/tm5-700/tm5-700.urdf"), profile, SceneConfig(kind="free"), q)
     measured = settle(plant, q, 200)
     band = np.array(profile.friction.coulomb) * 3 + np.array(profile.friction.stribeck) + 1.0
     assert np.all(np.abs(measured - true_gravity(profile, q)) < band)
@@ -104,7 +104,7 @@ def test_profile_seed_makes_runs_repeatable_and_different_seeds_differ(profile):
     q = np.array(POSES[1])
 
     def run(seed: int) -> np.ndarray:
-        plant = Plant(resolve("robots/tm5-700.urdf"), replace(profile, seed=seed), SceneConfig(kind="free"), q)
+        plant = Plant(resolve("robots/tm5-700/tm5-700.urdf"), replace(profile, seed=seed), SceneConfig(kind="free"), q)
         return hold(plant, q, 20)[0]
 
     np.testing.assert_array_equal(run(3), run(3))
@@ -113,7 +113,7 @@ def test_profile_seed_makes_runs_repeatable_and_different_seeds_differ(profile):
 
 def test_torque_measurement_has_the_profiles_noise_and_quantum(profile):
     q = np.array(POSES[1])
-    plant = Plant(resolve("robots/tm5-700.urdf"), profile, SceneConfig(kind="free"), q)
+    plant = Plant(resolve("robots/tm5-700/tm5-700.urdf"), profile, SceneConfig(kind="free"), q)
     settle(plant, q, 100)
     taus = hold(plant, q, 400)[0]
     std = taus.std(axis=0)
@@ -124,7 +124,7 @@ def test_torque_measurement_has_the_profiles_noise_and_quantum(profile):
 
 def test_latency_delays_the_measured_state(profile):
     q0 = np.array(POSES[1])
-    plant = Plant(resolve("robots/tm5-700.urdf"), profile, SceneConfig(kind="free"), q0)
+    plant = Plant(resolve("robots/tm5-700/tm5-700.urdf"), profile, SceneConfig(kind="free"), q0)
     for _ in range(3):
         plant.step()
     assert profile.torque_sensing.latency_periods == 1
@@ -137,7 +137,7 @@ def test_pressing_the_table_reads_positive_fz_in_tool_frame(cfg, robot):
     x, y = cfg.scene.table_center
     q, ok = robot.ik(tool_down_pose(np.array([x, y, cfg.scene.table_height + 0.02])), np.asarray(cfg.robot.home))
     assert ok
-    plant = Plant(resolve("robots/tm5-700.urdf"), profile, scene, q)
+    plant = Plant(resolve("robots/tm5-700/tm5-700.urdf"), profile, scene, q)
     free = hold(plant, q, 60)[1].mean(axis=0)
     q_press, _ = robot.ik(tool_down_pose(np.array([x, y, cfg.scene.table_height - 0.002])), q)
     for k in range(100):
@@ -153,7 +153,7 @@ def test_pressing_the_table_reads_positive_fz_in_tool_frame(cfg, robot):
 
 def test_sensor_reading_is_quantised_offset_and_saturated(profile):
     q = np.array(POSES[1])
-    plant = Plant(resolve("robots/tm5-700.urdf"), profile, SceneConfig(kind="free"), q)
+    plant = Plant(resolve("robots/tm5-700/tm5-700.urdf"), profile, SceneConfig(kind="free"), q)
     w = plant.sensor_reading()
     np.testing.assert_allclose(w[:3] / 0.03, np.round(w[:3] / 0.03), atol=1e-6)
     assert np.all(np.abs(plant.sensor_offset[:3]) <= profile.sensor.offset_force_n)
@@ -165,7 +165,7 @@ def test_sensor_reading_is_quantised_offset_and_saturated(profile):
 
 def test_external_wrench_at_the_tcp_shows_on_the_sensor(profile, robot, cfg):
     q, ok = robot.ik(tool_down_pose(np.array([0.45, -0.1, 0.3])), np.asarray(cfg.robot.home))
-    plant = Plant(resolve("robots/tm5-700.urdf"), profile, SceneConfig(kind="free"), q)
+    plant = Plant(resolve("robots/tm5-700/tm5-700.urdf"), profile, SceneConfig(kind="free"), q)
     base = hold(plant, q, 60)[1].mean(axis=0)
     plant.external_wrench = np.array([0.0, 0.0, 30.0, 0, 0, 0])  # a hand pushing the tool up (world +z)
     loaded = hold(plant, q, 60)[1].mean(axis=0)
@@ -190,7 +190,7 @@ class TestPegFixture:
         pose = pin.SE3(rot, np.array([hx + dx, hy, top + 0.01]))
         q, ok = robot.ik(pose, np.asarray(cfg.robot.home))
         assert ok
-        plant = Plant(resolve("robots/tm5-700.urdf"), profile, scene, q)
+        plant = Plant(resolve("robots/tm5-700/tm5-700.urdf"), profile, scene, q)
         z = top + 0.01
         while z > top - 0.035:
             z -= 0.01 * plant.dt
@@ -231,7 +231,7 @@ def test_a_step_with_a_contact_deeper_than_any_real_one_is_taken_again_precisely
     def plant_at(depth: float) -> Plant:
         q, ok = peg.ik(tool_down_pose(np.array([x + 0.017, y, cfg.scene.table_height - depth])), home)
         assert ok
-        return Plant(resolve("robots/tm5-700.urdf"), profile, scene, q)
+        return Plant(resolve("robots/tm5-700/tm5-700.urdf"), profile, scene, q)
 
     above = plant_at(-0.002)
     above.set_target(above.target)

@@ -8,7 +8,7 @@ import pytest
 
 from cell.config import CONFIG_DIR
 
-URDF = CONFIG_DIR / "robots" / "tm5-700.urdf"
+URDF = CONFIG_DIR / "robots" / "tm5-700" / "tm5-700.urdf"
 
 
 @pytest.fixture(scope="module")
