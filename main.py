@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from dataclasses import replace
@@ -13,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from cell.config import CONFIG_DIR, TOOLS, CellConfig, load_config, resolve
-from cell.configio import json_default
+from cell.configio import dumps_strict
 from cell.robot import RobotModel, load_robot
 from drivers.errors import CellError, ConfigError
 
@@ -463,7 +462,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     curve = None if args.no_curve else [int(v) for v in args.curve.split(",")] if args.curve else lab.DEFAULT_CURVE
     out = lab.evaluate(_lab_config(args), Path(args.data), Path(args.out), train_samples=args.train_samples,
                        large_samples=args.large_samples, curve=curve, nthread=args.nthread, seed=args.seed or 0,
-                       max_trees=args.max_trees, robot=args.robot)
+                       max_trees=args.max_trees, robot=args.robot, lofo=args.lofo)
     _emit(out, args.json)
     return 0
 
@@ -502,7 +501,7 @@ def cmd_emulate(args: argparse.Namespace) -> int:
 
 def _emit(out: dict[str, Any], as_json: bool) -> None:
     if as_json:
-        print(json.dumps(out, default=json_default))
+        print(dumps_strict(out))
         return
     for key, value in out.items():
         if isinstance(value, dict):
@@ -614,6 +613,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--large-samples", type=int, default=500_000)
     ev.add_argument("--curve", default=None, help="learning-curve sizes, comma-separated")
     ev.add_argument("--no-curve", action="store_true")
+    ev.add_argument("--lofo", action="store_true",
+                    help="also leave each training file out in turn: P1, P2, H1 fitted on the others, scored on it")
     ev.add_argument("--max-trees", type=int, default=None)
     ev.add_argument("--nthread", type=int, default=2)
     ev.add_argument("--plant", default=None, help="plant profile whose noise floor the report cites")

@@ -175,6 +175,7 @@ class ToolSensorSettings:
     zero_at_tare: bool | None = None
     mapping: Literal["jacobian", "learned", "contact"] | None = None
     free_moment_nm: float | None = None
+    measurement_noise: Literal["calibrated", "model"] | None = None
 
 
 @dataclass
@@ -201,6 +202,11 @@ class VirtualSensorConfig:
     # Innovation gate [standard deviations, 0: off]: a joint breaking away from stiction swings the
     # raw residual by +-10 N·m for a few periods, which an ungated filter reads as a 5 N contact.
     innovation_gate: float = 3.0
+    # The Kalman filter's measurement noise: "calibrated", the calibration's free-motion residual
+    # variance per joint (constant); "model", that variance raised each period to the hybrid model's
+    # own uncertainty there (cell/dynamics/uncertainty.py: wider at speeds it fits worse, outside its
+    # training coverage and, where it models a sticking regime, within the static friction band).
+    measurement_noise: Literal["calibrated", "model"] = "calibrated"
     # 1/s, bandwidth of the momentum observer's first-order response (it has no gate: at 25/s a joint
     # breaking away from stiction at the start of the approach reads as a contact).
     momentum_gain: float = 10.0

@@ -163,6 +163,27 @@ def json_default(obj: Any) -> Any:
     return str(obj)
 
 
+def finite_json(obj: Any) -> Any:
+    """`obj` with every NaN or infinite number replaced by None (JSON has no NaN: a report must parse
+    with any strict reader); numpy values become plain ones."""
+    if isinstance(obj, dict):
+        return {str(k): finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return finite_json(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def dumps_strict(obj: Any, **kw: Any) -> str:
+    """JSON text of `obj` with NaN/inf as null (`finite_json`), refusing anything else non-standard."""
+    return json.dumps(finite_json(obj), default=json_default, allow_nan=False, **kw)
+
+
 def read_versioned_json(doc_path: Path, fmt: str, version: int, what: str, missing: str) -> dict[str, Any]:
     """A saved artefact's JSON document: present, readable, of format `fmt` and not newer than `version`
     (one-line DataErrors naming the file otherwise; `missing` is the message when it does not exist)."""

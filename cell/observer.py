@@ -82,6 +82,10 @@ class ContactPredictor(FastPredictor):
         super().__init__(model, dt, filter_cfg)
         if self.part not in ("full", "rigid") or self.p2 is None:
             raise ValueError(f"the observers need a hybrid model with the rigid body (H1, H2), got {model.kind}")
+        # The model's own uncertainty at the last sample [N·m]^2, kept when `want_variance` (NaN otherwise,
+        # and without a coverage model).
+        self.want_variance = False
+        self.variance = np.full(self.n, np.nan)
 
     def parts_contact(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray,
                       external: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,6 +99,12 @@ class ContactPredictor(FastPredictor):
             x[self._nw:] = self._derived(q, dq, rigid + external)
         learned = np.zeros_like(rigid)
         learned[self.outputs] = self.forest.predict(x)
+        if self.model.coverage is not None:
+            w = self.model.coverage.weight_one(q, dq, ddq)
+            if self.coverage is not None:  # a blending model (H1): the learned part by its trust
+                learned *= w
+            if self.want_variance:
+                self.variance = self.model.coverage.sigma(dq[None, :], w[None, :])[0] ** 2
         return rigid, learned
 
     def predict_contact(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, external: np.ndarray) -> np.ndarray:
@@ -114,15 +124,20 @@ class KalmanObserver:
     """The paper's observer: model residual tau - tau_free, Kalman-filtered per joint.
 
     measurement_var: (n,) R, the variance of the model's residual in free motion [N·m]^2;
-    process_var: (n,) Q, the random-walk variance per period [N·m]^2 (how fast a contact may change).
+    process_var: (n,) Q, the random-walk variance per period [N·m]^2 (how fast a contact may change);
+    model_noise: R raised each period to the model's own variance there (`ContactPredictor.variance`),
+      when the model has one.
     """
 
     kind = "kalman"
     GATE_RUN = 3
 
     def __init__(self, model: LearnedModel, dt: float, measurement_var: np.ndarray, process_var: np.ndarray,
-                 rebias_samples: int = 25, filter_cfg: FilterConfig | None = None, gate: float = 3.0) -> None:
+                 rebias_samples: int = 25, filter_cfg: FilterConfig | None = None, gate: float = 3.0,
+                 model_noise: bool = False) -> None:
         self.fast = ContactPredictor(model, dt, filter_cfg)
+        self.model_noise = model_noise and model.coverage is not None
+        self.fast.want_variance = self.model_noise
         self.gate = gate
         self.n = n = model.forest.n
         self.R = np.asarray(measurement_var, float).reshape(n)
@@ -153,6 +168,10 @@ class KalmanObserver:
         z = raw - self.bias.offset
         self.raw = z
         kf = self.kf
+        R = self.R
+        if self.model_noise:
+            R = np.maximum(self.R, self.fast.variance)
+            kf.R = np.diag(R)
         if not self._started:  # the first sample is the best initial state there is
             kf.x = z.reshape(-1, 1).copy()
             self._started = True
@@ -164,7 +183,7 @@ class KalmanObserver:
                 # `gate` standard deviations it moves the estimate by little.  A real contact pushes
                 # one way: after GATE_RUN same-signed excursions in a row it passes unclipped.
                 x = kf.x.reshape(-1)
-                bound = self.gate * np.sqrt(np.diag(kf.P) + self.R)
+                bound = self.gate * np.sqrt(np.diag(kf.P) + R)
                 y = z - x
                 outside = np.abs(y) > bound
                 sign = np.sign(y)
@@ -252,12 +271,12 @@ class MomentumObserver:
 
 def make_observer(kind: str, model: LearnedModel, dt: float, measurement_var: np.ndarray,
                   process_noise_nm: np.ndarray, momentum_gain: float, rebias_window_s: float,
-                  gate: float = 3.0) -> TorqueObserver:
-    """The configured observer (`virtual_sensor.observer`)."""
+                  gate: float = 3.0, model_noise: bool = False) -> TorqueObserver:
+    """The configured observer (`virtual_sensor.observer`; `model_noise`: measurement_noise "model")."""
     samples = max(1, int(round(rebias_window_s / dt)))
     if kind == "kalman":
         return KalmanObserver(model, dt, measurement_var, np.asarray(process_noise_nm, float) ** 2, samples,
-                              gate=gate)
+                              gate=gate, model_noise=model_noise)
     if kind == "momentum":
         return MomentumObserver(model, dt, momentum_gain, samples)
     raise ValueError(f"unknown observer {kind!r} (kalman or momentum)")

@@ -11,6 +11,8 @@ import pinocchio as pin
 
 from cell.config import CONFIG_DIR
 from cell.configio import join, load_dataclass, read_yaml, require
+from cell.dynamics.physics import IdentificationConfig
+from cell.dynamics.uncertainty import CoverageConfig
 from cell.robot import RobotModel, ToolSpec
 from drivers.errors import ConfigError
 
@@ -46,8 +48,14 @@ class RobotFile:
     joints: int
     description: str
     drive: DriveFile = field(default_factory=DriveFile)
+    # How the model lab identifies this arm's P2 (cell/dynamics/physics.py IdentificationConfig).
+    identification: IdentificationConfig = field(default_factory=IdentificationConfig)
+    # How a hybrid's learned residual is trusted (cell/dynamics/uncertainty.py CoverageConfig).
+    learning: CoverageConfig = field(default_factory=CoverageConfig)
 
     def validate(self, where: str) -> None:
+        self.identification.validate(join(where, "identification"))
+        self.learning.validate(join(where, "learning"))
         require(self.joints >= 1, join(where, "joints"), f"must be >= 1, got {self.joints}")
         gains = self.drive.torque_constants_nm_per_a
         if gains is not None:
@@ -67,6 +75,8 @@ class RobotSpec:
     description: str
     torque_constants: tuple[float, ...] | None  # N·m/A per joint, when torques come from motor currents
     torque_source: TorqueSource
+    identification: IdentificationConfig = field(default_factory=IdentificationConfig)
+    learning: CoverageConfig = field(default_factory=CoverageConfig)
 
 
 def available_robots(robots_dir: Path = ROBOTS_DIR) -> list[str]:
@@ -102,7 +112,8 @@ def load_robot_spec(name: str, robots_dir: Path = ROBOTS_DIR) -> RobotSpec:
     return RobotSpec(
         name=name, folder=folder, urdf=urdf, flange_frame=spec.flange_frame, joints=spec.joints,
         description=spec.description.strip(), torque_constants=None if gains is None else tuple(gains),
-        torque_source=spec.drive.torque_source,
+        torque_source=spec.drive.torque_source, identification=spec.identification,
+        learning=spec.learning,
     )
 
 

@@ -220,7 +220,8 @@ def build_virtual_source(cfg: VirtualSensorConfig, robot: RobotModel, tool: str,
 def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: LearnedModel, cal: Calibration,
                 observer: str, mapping: str, where: str = "calibration") -> VirtualForceSource:
     obs = make_observer(observer, model, dt, np.asarray(cal.measurement_var), np.asarray(cfg.process_noise_nm),
-                        cfg.momentum_gain, cfg.rebias_window_s, cfg.innovation_gate)
+                        cfg.momentum_gain, cfg.rebias_window_s, cfg.innovation_gate,
+                        model_noise=cfg.measurement_noise == "model")
     wmap: JacobianMap | LearnedMap
     if mapping == "contact":
         wmap = contact_map(cfg, robot, np.asarray(cal.measurement_var))

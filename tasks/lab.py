@@ -22,10 +22,11 @@ import yaml
 from tqdm import tqdm
 
 from cell.config import CellConfig, resolve
-from cell.configio import json_default, read_yaml, to_plain
+from cell.configio import dumps_strict, read_yaml, to_plain
 from cell.dataset import (
     DerivativeMode,
     Samples,
+    Trajectory,
     files_sha256,
     load_manifest,
     load_split,
@@ -38,6 +39,7 @@ from cell.dynamics.fastpredict import FastPredictor
 from cell.dynamics.features import FeatureSpec
 from cell.dynamics.learned import Forest, LearnedModel, XGBParams, fit_learned, physics_part
 from cell.dynamics.physics import IdentificationConfig, P1Model, P2Model, identify_p2, nominal_p2
+from cell.dynamics.uncertainty import CoverageConfig
 from cell.excitation import (
     ExcitationConfig,
     Plan,
@@ -57,6 +59,7 @@ from cell.robots import load_robot_spec, robot_model
 from cell.safety import SafetyMonitor
 from drivers.errors import ConfigError, DataError
 from tasks.collect import PlaybackTask
+from tasks.lab_checks import leave_one_file_out, payload_transfer
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +76,12 @@ def lab_robot(cfg: CellConfig, robot: str = CELL_ROBOT) -> RobotModel:
     if robot == CELL_ROBOT:
         return load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
     return robot_model(load_robot_spec(robot))
+
+
+def lab_settings(robot: str = CELL_ROBOT) -> dict[str, Any]:
+    """How the lab models a robot (TrainOptions fields): its robot.yaml `identification` and `learning`."""
+    spec = load_robot_spec(robot)
+    return {"identification": spec.identification, "coverage": spec.learning}
 
 
 # ========================================================================================= collect
@@ -295,6 +304,7 @@ class TrainOptions:
     xgb: dict[str, XGBParams] = dataclasses.field(default_factory=lambda: dict(DEFAULT_XGB))
     derivatives: DerivativeMode = "zero_phase"
     identification: IdentificationConfig = dataclasses.field(default_factory=IdentificationConfig)
+    coverage: CoverageConfig = dataclasses.field(default_factory=CoverageConfig)
     nthread: int = 2
     seed: int = 0
     max_trees: int | None = None  # cap on boosting rounds (quick runs)
@@ -357,7 +367,8 @@ def fit_model(kind: str, robot: RobotModel, s: Samples, opts: TrainOptions, data
         # early-stopping holdout only withholds a fifth of the data (default plant, 500k: J1-3 RMSE
         # 1.82 N m with the holdout, 1.64 without).
         params = dataclasses.replace(params, validation_fraction=0.0)
-    return fit_learned(kind, robot, s, spec or opts.spec(kind), params, p2=p2, training_data_sha256=data_sha)
+    return fit_learned(kind, robot, s, spec or opts.spec(kind), params, p2=p2, training_data_sha256=data_sha,
+                       coverage=opts.coverage)
 
 
 def train(
@@ -384,8 +395,9 @@ def train(
     """
     if derivatives not in ("zero_phase", "causal"):
         raise ConfigError(f"--derivatives {derivatives}: unknown (zero_phase or causal)")
+    settings = lab_settings(robot)
     robot = lab_robot(cfg, robot)
-    opts = TrainOptions(derivatives=cast(DerivativeMode, derivatives), nthread=nthread, seed=seed)
+    opts = TrainOptions(derivatives=cast(DerivativeMode, derivatives), nthread=nthread, seed=seed, **settings)
     opts = opts.override(window=window, grouping=grouping)
     t0 = time.perf_counter()
     s, sha = load_samples(Path(dataset), "train", robot, opts.derivatives, samples, seed)
@@ -448,6 +460,7 @@ def evaluate(
     paper_variants: bool = True,
     max_trees: int | None = None,
     robot: str = CELL_ROBOT,
+    lofo: bool = False,
 ) -> dict[str, Any]:
     """Fit P1, P2, D, H1, H2, H3 on `train_samples` of the training split (whole moves; the hybrids'
     P2 identified on the same samples), D also on `large_samples` (D_large), and as variants H2 on
@@ -466,8 +479,9 @@ def evaluate(
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    robot = lab_robot(cfg, robot)
-    opts = TrainOptions(nthread=nthread, seed=seed, max_trees=max_trees)
+    robot_name = robot
+    robot = lab_robot(cfg, robot_name)
+    opts = TrainOptions(nthread=nthread, seed=seed, max_trees=max_trees, **lab_settings(robot_name))
     dataset = Path(dataset)
     everything, sha = load_samples(dataset, "train", robot)
     man = load_manifest(dataset)
@@ -518,7 +532,8 @@ def evaluate(
 
     mean = {k: v["j123"]["mean"] for k, v in results.items()}
     six = ["P1", "P2", "D", "H1", "H2", "H3"]
-    floor = noise_floor(cfg)
+    # Only the simulated plant's torque noise is known; a real arm's recordings report none.
+    floor = noise_floor(cfg) if robot_name == CELL_ROBOT else None
     floor_j123 = float(np.mean(floor[:3])) if floor else None
     summary: dict[str, Any] = {
         "dataset": str(dataset), "plant": cfg.plant, "test_trajectories": len(tests),
@@ -538,9 +553,22 @@ def evaluate(
         "learning_curve": curve_out,
         "models": results,
         "identified_p2": p2_small.params.report if p2_small is not None else None,
-        "wall_s": round(time.perf_counter() - t_start, 1),
     }
-    (out_dir / "evaluation.json").write_text(json.dumps(summary, indent=2, default=json_default))
+    if man.loaded:
+        loaded = load_split(dataset, "loaded", robot.n, robot.model.name)
+        summary["payload_transfer"] = payload_transfer(
+            {k: models[k] for k in ("P2", "H1", "H2", "H3")}, loaded, man.filter)
+    if lofo:
+        def fit_fold(trajs: list[Trajectory]) -> dict[str, Any]:
+            s_all = stack(trajs, "zero_phase", man.filter)
+            sub = subsample_segments(s_all, train_samples, seed)
+            p2 = identify_p2(robot, sub.q, sub.dq, sub.ddq, sub.tau, opts.identification, sha)
+            return {"P1": models["P1"], "P2": p2, "H1": fit_model("H1", robot, sub, opts, sha, p2=p2)}
+
+        summary["leave_one_file_out"] = leave_one_file_out(manifest_files(dataset, "train"), fit_fold, robot.n,
+                                                           man.filter, man.max_gap_s)
+    summary["wall_s"] = round(time.perf_counter() - t_start, 1)
+    (out_dir / "evaluation.json").write_text(dumps_strict(summary, indent=2))
     (out_dir / "table.md").write_text(_table(summary))
     try:
         summary["plot"] = str(_plot(summary, out_dir / "evaluation.png"))
@@ -577,9 +605,10 @@ def bench_model(
          [--calls 5000] [--fit-samples 500000] [--train-samples 24000] [--nthread 2] [--seed 0]
          [--robot tm5-700] [--json]
     """
+    settings = lab_settings(robot)
     robot = lab_robot(cfg, robot)
     dataset = Path(dataset)
-    opts = TrainOptions(nthread=nthread, seed=seed, derivatives="causal")
+    opts = TrainOptions(nthread=nthread, seed=seed, derivatives="causal", **settings)
     if model_path is not None:
         loaded = load_model(Path(model_path), robot)
         if not isinstance(loaded, LearnedModel):

@@ -16,6 +16,7 @@ from cell.dynamics.base import ModelMeta
 from cell.dynamics.features import FeatureSpec
 from cell.dynamics.learned import PHYSICS_PART, Forest, LearnedModel, XGBParams
 from cell.dynamics.physics import P1Model, P2Model, P2Params, urdf_sha256
+from cell.dynamics.uncertainty import Coverage
 from cell.robot import RobotModel
 from drivers.errors import DataError
 
@@ -50,6 +51,8 @@ def save_model(model: AnyModel, path: Path) -> Path:
             os.replace(tmp, path / name)
             boosters[str(j + 1)] = name
         doc["boosters"] = boosters
+        if model.coverage is not None:
+            doc["coverage"] = model.coverage.to_dict()
     tmp = path / ".model.json.tmp"
     tmp.write_text(json.dumps(doc, indent=1))
     os.replace(tmp, path / "model.json")
@@ -109,4 +112,10 @@ def load_model(path: Path, robot: RobotModel) -> AnyModel:
     missing = [j + 1 for j in forest.outputs if j not in boosters]
     if missing:
         raise DataError(f"{doc_path}: no booster for joint(s) {missing}")
-    return LearnedModel(kind=meta.kind, forest=forest, physics=p2, meta=meta, params=params)
+    coverage = None
+    if "coverage" in doc:
+        try:
+            coverage = Coverage.from_dict(doc["coverage"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(f"{doc_path}: coverage: {exc}") from None
+    return LearnedModel(kind=meta.kind, forest=forest, physics=p2, meta=meta, params=params, coverage=coverage)

@@ -155,6 +155,7 @@ class FastPredictor:
         self.part = PHYSICS_PART[model.kind]
         self.n = model.forest.n
         self.p2 = model.physics
+        self.coverage = model.coverage if model.coverage is not None and model.coverage.blend else None
         self.stock = stock
         groups: list[Group] = model.forest.groups
         self.spec = model.forest.spec
@@ -224,6 +225,8 @@ class FastPredictor:
         if self.part == "none":
             tau[self.outputs] = learned
         else:
+            if self.coverage is not None:
+                learned = learned * self.coverage.weight_one(q, dq, ddq)[self.outputs]
             tau[self.outputs] += learned
         return tau
 

@@ -24,7 +24,8 @@ class FeatureSpec:
       * ``own``: every joint on its own q, dq, ddq only (for a residual that is mostly joint friction).
     window: samples per input (1 = instant; the paper's best uses 10 = 80 ms at 8 ms), flattened
       newest first; rows before a trajectory's start reuse its first sample.
-    joints: the learned outputs are joints 1..joints (the paper models 1-5).
+    joints: the learned outputs are joints 1..joints; None (the default): every joint of the arm (the
+      paper models 1-5 of its six).
     Derived inputs (current sample, per output joint j, with s_j = tanh(dq_j / sign_eps) the
     direction of motion), the structure of gear friction:
     physics_inputs: |tau_phys_j| * s_j, where tau_phys is what the model's own physics part predicts
@@ -39,7 +40,7 @@ class FeatureSpec:
 
     window: int = 10
     grouping: Grouping = "paper"
-    joints: int = 5
+    joints: int | None = None
     physics_inputs: bool = False
     friction_harmonics: int = 0
     angle_sums: bool = False
@@ -47,9 +48,13 @@ class FeatureSpec:
 
     def validate(self, where: str) -> None:
         require(1 <= self.window <= 50, join(where, "window"), f"must lie in 1..50, got {self.window}")
-        require(self.joints >= 1, join(where, "joints"), "must be >= 1")
+        require(self.joints is None or self.joints >= 1, join(where, "joints"), "must be >= 1 (or null: all)")
         require(0 <= self.friction_harmonics <= 20, join(where, "friction_harmonics"), "must lie in 0..20")
         require(self.sign_eps > 0, join(where, "sign_eps"), "must be > 0")
+
+    def learned(self, n: int) -> int:
+        """How many joints (1..m) are learned on an arm of n joints."""
+        return n if self.joints is None else self.joints
 
     def to_dict(self) -> dict[str, Any]:
         return {"window": self.window, "grouping": self.grouping, "joints": self.joints,
@@ -60,7 +65,7 @@ class FeatureSpec:
 def derived_layout(spec: FeatureSpec, n: int) -> list[tuple[str, int]]:
     """Layout of the derived-input vector E as (name, joint) over all learned joints; each group
     takes the entries of its own joints (joint -1: every group).  Matches the columns of `derived`."""
-    J = range(spec.joints)
+    J = range(spec.learned(n))
     out: list[tuple[str, int]] = []
     if spec.physics_inputs:
         out += [(f"load{j + 1}", j) for j in J]
@@ -77,7 +82,7 @@ def derived_layout(spec: FeatureSpec, n: int) -> list[tuple[str, int]]:
 def derived(spec: FeatureSpec, q: np.ndarray, dq: np.ndarray, physics: np.ndarray | None) -> np.ndarray:
     """E for a batch (N, n) -> (N, len(derived_layout)) float32 (computed in float64, rounded once,
     as the single-sample path `DerivedOne` does)."""
-    m = spec.joints
+    m = spec.learned(q.shape[1])
     N = q.shape[0]
     out = np.empty((N, len(derived_layout(spec, q.shape[1]))), np.float32)
     s = np.tanh(dq[:, :m] / spec.sign_eps)
@@ -109,7 +114,7 @@ class DerivedOne:
     """`derived` for one sample without batch overhead (the served path); same columns, same values."""
 
     def __init__(self, spec: FeatureSpec, n: int) -> None:
-        self.m = spec.joints
+        self.m = spec.learned(n)
         self.inv_eps = 1.0 / spec.sign_eps
         self.physics = spec.physics_inputs
         self.k = np.arange(1, spec.friction_harmonics + 1, dtype=float)[:, None]  # (H, 1)
@@ -169,7 +174,8 @@ class Group:
 
 def groups(spec: FeatureSpec, n: int) -> list[Group]:
     """The feature groups for an arm with n joints."""
-    if spec.joints > n:
+    m = spec.learned(n)
+    if m > n:
         raise ValueError(f"features.joints={spec.joints} but the arm has {n} joints")
     q = list(range(n))
     layout = derived_layout(spec, n)
@@ -183,16 +189,16 @@ def groups(spec: FeatureSpec, n: int) -> list[Group]:
 
     out: list[Group] = []
     if spec.grouping == "paper":
-        first = list(range(min(3, spec.joints)))
+        first = list(range(min(3, m)))
         out.append(make(tuple(first), tuple(first + [n + j for j in first] + [2 * n + j for j in first])))
-        out.extend(make((j,), own_q(j)) for j in range(3, spec.joints))
+        out.extend(make((j,), own_q(j)) for j in range(3, m))
     elif spec.grouping == "per_joint":
-        out.extend(make((j,), own_q(j)) for j in range(spec.joints))
+        out.extend(make((j,), own_q(j)) for j in range(m))
     elif spec.grouping == "full":
         everything = tuple(range(3 * n))
-        out.extend(make((j,), everything) for j in range(spec.joints))
+        out.extend(make((j,), everything) for j in range(m))
     elif spec.grouping == "own":
-        out.extend(make((j,), (j, n + j, 2 * n + j)) for j in range(spec.joints))
+        out.extend(make((j,), (j, n + j, 2 * n + j)) for j in range(m))
     else:
         raise ValueError(f"unknown grouping {spec.grouping!r} (paper, per_joint, full, own)")
     return out

@@ -16,6 +16,7 @@ from cell.dataset import Samples
 from cell.dynamics.base import ModelMeta
 from cell.dynamics.features import FeatureSpec, Group, derived, group_matrix, groups, state_matrix
 from cell.dynamics.physics import P2Model, robot_meta
+from cell.dynamics.uncertainty import Coverage, CoverageConfig
 from cell.robot import RobotModel
 
 log = logging.getLogger(__name__)
@@ -151,6 +152,7 @@ class LearnedModel:
     physics: P2Model | None
     meta: ModelMeta
     params: XGBParams = field(default_factory=XGBParams)
+    coverage: Coverage | None = None  # trust and uncertainty of the learned residual (hybrids only)
 
     @property
     def part(self) -> str:
@@ -166,8 +168,27 @@ class LearnedModel:
         base, load = physics_part(self.kind, self.physics, q, dq, ddq)
         learned = self.forest.predict(q, dq, ddq, starts, load)
         outs = self.forest.outputs
+        if self.coverage is not None and self.coverage.blend:
+            learned[:, outs] *= self.trust(q, dq, ddq)[:, outs]
         base[:, outs] += learned[:, outs]
         return base
+
+    def trust(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
+        """(N, n) trust in the learned residual: 1 without a coverage model, else `Coverage.weight` (what
+        the prediction is blended by when `coverage.blend`, what the uncertainty is made of always)."""
+        if self.coverage is None or self.kind == "D":
+            return np.ones(np.atleast_2d(q).shape)
+        return self.coverage.weight(q, dq, ddq)
+
+    def predict_with_uncertainty(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray,
+                                 starts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(torque, one-sigma uncertainty, trust) per sample and joint; the uncertainty is NaN without a
+        coverage model (a model saved before it existed, or D)."""
+        tau = self.predict(q, dq, ddq, starts)
+        w = self.trust(q, dq, ddq)
+        if self.coverage is None or self.kind == "D":
+            return tau, np.full(tau.shape, np.nan), w
+        return tau, self.coverage.sigma(np.atleast_2d(dq), w), w
 
 
 def physics_part(kind: str, p2: P2Model | None, q: np.ndarray, dq: np.ndarray,
@@ -200,8 +221,11 @@ def fit_learned(
     params: XGBParams | None = None,
     p2: P2Model | None = None,
     training_data_sha256: str = "",
+    coverage: CoverageConfig | None = None,
 ) -> LearnedModel:
-    """Fit D (torque) or a hybrid (the residual left by its physics part) on `samples`."""
+    """Fit D (torque) or a hybrid (the residual left by its physics part) on `samples`; a hybrid also
+    gets its coverage and residual levels (cell/dynamics/uncertainty.py), measured on the segments the
+    forest held out for early stopping (all samples when it held none)."""
     if kind not in PHYSICS_PART:
         raise ValueError(f"unknown learned model {kind!r} (D, H1, H2, H3)")
     spec = spec or FeatureSpec()
@@ -218,4 +242,17 @@ def fit_learned(
                "physics": PHYSICS_PART[kind]},
     )
     log.info("%s: %d trees on %d samples in %.1f s", kind, forest.trees(), len(samples), forest.fit_seconds)
-    return LearnedModel(kind=kind, forest=forest, physics=p2 if kind != "D" else None, meta=meta, params=params)
+    cov = None
+    if kind != "D" and p2 is not None:
+        cc = coverage or CoverageConfig()
+        cc.validate("coverage")
+        learned = forest.predict(samples.q, samples.dq, samples.ddq, samples.starts, load)
+        outs = forest.outputs
+        resid_h = target.copy()
+        resid_h[:, outs] -= learned[:, outs]
+        _, val_rows = _split_segments(samples, params.validation_fraction, params.seed)
+        cov = Coverage.fit(outs, samples.q, samples.dq, samples.ddq, resid_h, target, np.abs(p2.params.f_c),
+                           cc.bins, cc.min_count, cc.stick_speed, val_rows, blend=kind == "H1")
+        meta.extra["coverage"] = {"min_count": cc.min_count, "stick_speed": cc.stick_speed, "bins": cc.bins}
+    return LearnedModel(kind=kind, forest=forest, physics=p2 if kind != "D" else None, meta=meta, params=params,
+                        coverage=cov)

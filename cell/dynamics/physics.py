@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 from dataclasses import dataclass, field
@@ -14,6 +15,8 @@ from scipy.optimize import lsq_linear
 
 from cell.configio import join, require
 from cell.dynamics.base import ModelMeta
+from cell.dynamics.consistency import is_consistent
+from cell.dynamics.friction import extra_columns, term_names, validate_terms
 from cell.robot import RobotModel
 
 log = logging.getLogger(__name__)
@@ -164,6 +167,14 @@ class IdentificationConfig:
     chunk: int = 4000
     nonneg_losses: bool = True  # B_m, C_m, f_c >= 0 where identifiable on their own
     seed: int = 0
+    # "map": the linear MAP estimate on the base parameters (a full pi nearest the nominal one is then
+    # reconstructed; its physical consistency is reported, not enforced).  "log_cholesky": every link's
+    # parameters in log-Cholesky coordinates (cell/dynamics/consistency.py), so each identified link is
+    # a realisable body (positive mass, positive-definite inertia), solved by nonlinear least squares.
+    consistency: str = "map"
+    # Loss terms beyond B_m q'' + C_m q' + f_c sign(q') (cell/dynamics/friction.py EXTRA_TERMS);
+    # they need consistency "log_cholesky".
+    loss_terms: tuple[str, ...] = ()
 
     def validate(self, where: str) -> None:
         require(self.prior_relative_std > 0, join(where, "prior_relative_std"), "must be > 0")
@@ -171,6 +182,11 @@ class IdentificationConfig:
         require(self.rotor_inertia_prior_std > 0, join(where, "rotor_inertia_prior_std"), "must be > 0")
         require(self.sign_eps >= 0, join(where, "sign_eps"), "must be >= 0")
         require(self.max_samples >= 100, join(where, "max_samples"), "must be >= 100")
+        require(self.consistency in ("map", "log_cholesky"), join(where, "consistency"),
+                f"must be map or log_cholesky, got {self.consistency!r}")
+        validate_terms(list(self.loss_terms), join(where, "loss_terms"))
+        require(not self.loss_terms or self.consistency == "log_cholesky", join(where, "loss_terms"),
+                "need consistency: log_cholesky")
 
 
 @dataclass
@@ -185,21 +201,28 @@ class P2Params:
     beta: np.ndarray = field(default_factory=lambda: np.zeros(0))
     beta_names: list[str] = field(default_factory=list)
     report: dict[str, Any] = field(default_factory=dict)
+    extra_terms: list[str] = field(default_factory=list)  # cell/dynamics/friction.py terms
+    extra: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (n, columns of extra_terms)
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "inertial": self.inertial.tolist(), "B_m": self.B_m.tolist(), "C_m": self.C_m.tolist(),
             "f_c": self.f_c.tolist(), "sign_eps": self.sign_eps, "beta": self.beta.tolist(),
-            "beta_names": self.beta_names, "report": self.report,
+            "beta_names": self.beta_names, "report": self.report, "extra_terms": self.extra_terms,
+            "extra": self.extra.tolist(),
         }
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> P2Params:
+        terms = list(d.get("extra_terms", []))
+        validate_terms(terms, "p2.extra_terms")
+        n = len(d["B_m"])
+        extra = np.asarray(d.get("extra", []), float).reshape(n, len(term_names(terms)))
         return P2Params(
             inertial=np.asarray(d["inertial"], float), B_m=np.asarray(d["B_m"], float),
             C_m=np.asarray(d["C_m"], float), f_c=np.asarray(d["f_c"], float), sign_eps=float(d["sign_eps"]),
             beta=np.asarray(d.get("beta", []), float), beta_names=list(d.get("beta_names", [])),
-            report=dict(d.get("report", {})),
+            report=dict(d.get("report", {})), extra_terms=terms, extra=extra,
         )
 
 
@@ -221,16 +244,41 @@ class P2Model:
     def rigid(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
         return rnea_batch(self.model, self.data, np.atleast_2d(q), np.atleast_2d(dq), np.atleast_2d(ddq))
 
-    def losses(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
+    def losses(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, rigid: np.ndarray | None = None) -> np.ndarray:
+        """The joint losses; a `load` term reads the rigid-body torque (`rigid`, computed when not given)."""
         p = self.params
-        return p.B_m * ddq + p.C_m * dq + p.f_c * smooth_sign(dq, p.sign_eps)
+        s = smooth_sign(dq, p.sign_eps)
+        out = p.B_m * ddq + p.C_m * dq + p.f_c * s
+        if p.extra_terms:
+            if rigid is None and "load" in p.extra_terms:
+                one = np.ndim(q) == 1
+                rigid = self.rigid_one(q, dq, ddq) if one else self.rigid(q, dq, ddq)
+            out = out + np.sum(extra_columns(p.extra_terms, np.asarray(dq), s, rigid) * p.extra, axis=-1)
+        return out
 
     def predict(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, starts: np.ndarray | None = None) -> np.ndarray:
-        return self.rigid(q, dq, ddq) + self.losses(np.atleast_2d(q), np.atleast_2d(dq), np.atleast_2d(ddq))
+        q, dq, ddq = np.atleast_2d(q), np.atleast_2d(dq), np.atleast_2d(ddq)
+        rigid = self.rigid(q, dq, ddq)
+        return rigid + self.losses(q, dq, ddq, rigid)
 
     def predict_one(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
         """One sample (n,) without batch overhead (the served path)."""
-        return self.rigid_one(q, dq, ddq) + self.losses(q, dq, ddq)
+        rigid = self.rigid_one(q, dq, ddq)
+        return rigid + self.losses(q, dq, ddq, rigid)
+
+    def with_payload(self, mass: float, com: np.ndarray | None = None) -> P2Model:
+        """The same arm carrying `mass` kg more at `com` (flange frame, m; the flange origin when unknown):
+        a point mass added to the last link, no new data needed."""
+        if not np.isfinite(mass) or mass < 0:
+            raise ValueError(f"payload mass {mass} kg: must be finite and >= 0")
+        com = np.zeros(3) if com is None else np.asarray(com, float)
+        flange = self.robot.model.frames[self.robot.flange_id]
+        point = pin.Inertia(float(mass), flange.placement.act(com), np.zeros((3, 3)))
+        inertial = self.params.inertial.copy()
+        inertial[flange.parentJoint - 1] += point.toDynamicParameters()
+        payload = {"mass": float(mass), "com": com.tolist()}
+        params = dataclasses.replace(self.params, inertial=inertial, report={**self.params.report, "payload": payload})
+        return P2Model(self.robot, params, self.meta)
 
     def rigid_one(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
         return np.array(pin.rnea(self.model, self.data, q, dq, ddq))
@@ -256,8 +304,13 @@ def identify_p2(
     training_data_sha256: str = "",
 ) -> P2Model:
     """Identify P2 from measured motion: base parameters by QR, weighted least squares with a
-    prior toward the nominal base parameters, and non-negative losses (bounded least squares)."""
+    prior toward the nominal base parameters, and non-negative losses (bounded least squares).
+    With `cfg.consistency == "log_cholesky"`: `cell.dynamics.consistent_id.identify_consistent`."""
     cfg = cfg or IdentificationConfig()
+    if cfg.consistency == "log_cholesky":
+        from cell.dynamics.consistent_id import identify_consistent
+
+        return identify_consistent(robot, q, dq, ddq, tau, cfg, training_data_sha256)
     model = robot.model
     n = model.nv
     N = q.shape[0]
@@ -345,6 +398,8 @@ def identify_p2(
         "lumped_losses": lumped,  # not identifiable on their own; folded into an inertial base parameter
         "masses_kg": np.round(inertial[:, 0], 4).tolist(),
         "mass_matrix_positive": _mass_matrix_positive(robot, inertial, B_m, q[rows]),
+        "consistency": "map",
+        "physically_consistent": all(is_consistent(inertial[j]) for j in range(n)),
     }
     if not report["mass_matrix_positive"]:
         log.warning("identified P2 has a mass matrix that is not positive definite on some training states")
