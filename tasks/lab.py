@@ -59,7 +59,7 @@ from cell.robots import load_robot_spec, robot_model
 from cell.safety import SafetyMonitor
 from drivers.errors import ConfigError, DataError
 from tasks.collect import PlaybackTask
-from tasks.lab_checks import leave_one_file_out, payload_transfer
+from tasks.lab_checks import leave_one_file_out, payload_transfer, regime_errors, uncertainty_report
 
 log = logging.getLogger(__name__)
 
@@ -554,6 +554,8 @@ def evaluate(
         "models": results,
         "identified_p2": p2_small.params.report if p2_small is not None else None,
     }
+    summary["regimes"] = regime_errors({k: models[k] for k in six}, tests)
+    summary["uncertainty"] = {k: uncertainty_report(models[k], tests) for k in ("H1", "H2", "H3")}
     if man.loaded:
         loaded = load_split(dataset, "loaded", robot.n, robot.model.name)
         summary["payload_transfer"] = payload_transfer(
@@ -631,6 +633,9 @@ def bench_model(
     out_fast = np.empty((n_calls, robot.n))
     out_stock = np.empty((n_calls, robot.n))
 
+    # The served sample includes its uncertainty when the model has one (cell/dynamics/uncertainty.py).
+    with_sigma = model.coverage is not None
+
     def stream(pred: FastPredictor, out: np.ndarray) -> np.ndarray:
         """One pass over the stream, one timed call per control period's sample [us]."""
         pred.reset()
@@ -639,6 +644,8 @@ def bench_model(
             q, dq, ddq = tests.q[k], tests.dq[k], tests.ddq[k]
             ns0 = time.perf_counter_ns()
             out[k] = pred.predict_one(q, dq, ddq)
+            if with_sigma:
+                pred.last_sigma()
             times[k] = (time.perf_counter_ns() - ns0) / 1e3
         return times
 
@@ -673,7 +680,7 @@ def bench_model(
         "hybrid_predict_max_us": round(float(np.max(t_fast)), 2),
         "stock_predict_p50_us": round(s50, 2),
         "stock_predict_p99_us": round(float(np.percentile(t_stock, 99)), 2),
-        "speedup": round(s50 / p50, 2), "calls": n_calls,
+        "speedup": round(s50 / p50, 2), "calls": n_calls, "includes_uncertainty": with_sigma,
         "max_abs_diff_vs_stock_nm": diff_stock, "max_abs_diff_vs_batch_nm": diff_batch,
         "fit_500k_s": round(forest.fit_seconds, 2), "fit_samples": len(big), "fit_physics_s": round(t_phys, 2),
         "fit_trees": forest.trees(), "nthread": nthread,

@@ -155,7 +155,12 @@ class FastPredictor:
         self.part = PHYSICS_PART[model.kind]
         self.n = model.forest.n
         self.p2 = model.physics
-        self.coverage = model.coverage if model.coverage is not None and model.coverage.blend else None
+        # Trust and uncertainty (cell/dynamics/uncertainty.py): `coverage` blends the learned part (H1),
+        # `trust_model` is any hybrid's, for `last_sigma`.
+        self.trust_model = model.coverage if model.kind != "D" else None
+        self.coverage = self.trust_model if self.trust_model is not None and self.trust_model.blend else None
+        self._last_dq = np.zeros(self.n)
+        self._last_w = np.ones(self.n)
         self.stock = stock
         groups: list[Group] = model.forest.groups
         self.spec = model.forest.spec
@@ -225,10 +230,19 @@ class FastPredictor:
         if self.part == "none":
             tau[self.outputs] = learned
         else:
-            if self.coverage is not None:
-                learned = learned * self.coverage.weight_one(q, dq, ddq)[self.outputs]
+            if self.trust_model is not None:
+                self._last_dq = dq
+                self._last_w = self.trust_model.weight_one(q, dq, ddq)
+                if self.coverage is not None:
+                    learned = learned * self._last_w[self.outputs]
             tau[self.outputs] += learned
         return tau
+
+    def last_sigma(self) -> np.ndarray:
+        """One-sigma uncertainty [N·m] of the last `predict_one` (NaN without a coverage model)."""
+        if self.trust_model is None:
+            return np.full(self.n, np.nan)
+        return self.trust_model.sigma(self._last_dq[None, :], self._last_w[None, :])[0]
 
     def step(self, q: np.ndarray, dq: np.ndarray | None = None) -> np.ndarray:
         v, a = self.derivs.step(q, dq)

@@ -307,6 +307,7 @@ def identify_p2(
     prior toward the nominal base parameters, and non-negative losses (bounded least squares).
     With `cfg.consistency == "log_cholesky"`: `cell.dynamics.consistent_id.identify_consistent`."""
     cfg = cfg or IdentificationConfig()
+    cfg.validate("identification")
     if cfg.consistency == "log_cholesky":
         from cell.dynamics.consistent_id import identify_consistent
 

@@ -13,7 +13,8 @@ learned at rest was -4 N m where the joint-wise runs held +1 to +6.5 N m).
 
 The uncertainty (one standard deviation of the torque error, N m) comes from the residual levels
 measured on held-out training segments, binned by joint speed: the hybrid's where w = 1, the physics
-part's where w = 0, and in between sqrt(w s_h^2 + (1 - w) s_p^2).  In the sticking regime it is at
+part's where w = 0, and in between sqrt(w s_h^2 + (1 - w) s_p^2) (a hybrid that does not blend, H2
+or H3, keeps its own level s_h).  In the sticking regime it is at
 least the static band's spread, f_c / sqrt(3) (a torque anywhere within +-f_c).
 """
 
@@ -112,8 +113,11 @@ class Coverage:
         b = np.clip(np.searchsorted(SPEED_EDGES, np.abs(dq), side="right") - 1, 0, len(SPEED_EDGES) - 2)
         cols = np.arange(dq.shape[1])[None, :]
         sh = self.sigma_hybrid[cols, b]
-        sp = self.sigma_physics[cols, b]
-        s = np.sqrt(w * sh**2 + (1.0 - w) * sp**2)
+        if self.blend:
+            sp = self.sigma_physics[cols, b]
+            s = np.sqrt(w * sh**2 + (1.0 - w) * sp**2)
+        else:  # the prediction keeps its whole learned part: its own level, the trust only reported
+            s = sh
         if self.stick_speed > 0:
             sticking = np.abs(dq) < self.stick_speed
             s = np.where(sticking, np.maximum(s, self.static_band / np.sqrt(3.0)), s)
