@@ -11,9 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from cell.config import CONFIG_DIR, TOOLS, CellConfig, load_config, resolve
+from cell.cliargs import COUNT, NTHREAD, PORT, SEED, float_in, int_in, int_list
+from cell.config import CONFIG_DIR, TOOLS, CellConfig, check_home, check_task_force, load_config, resolve
 from cell.configio import dumps_strict
 from cell.robot import RobotModel, load_robot
+from cell.signals import Terminated, received_sigterm, sigterm_as_interrupt
 from drivers.errors import CellError, ConfigError
 
 log = logging.getLogger("tmcell")
@@ -24,7 +26,9 @@ TASK_NAMES = ("wipe", "peg-in-hole")
 # --------------------------------------------------------------------------------------- building
 def robot_for(cfg: CellConfig, tool: str) -> RobotModel:
     tcp = cfg.robot.tcp_wipe if tool == "wipe" else cfg.robot.tcp_peg
-    return load_robot(resolve(cfg.robot.urdf), tcp, cfg.robot.tool_mass, cfg.robot.tool_com)
+    robot = load_robot(resolve(cfg.robot.urdf), tcp, cfg.robot.tool_mass, cfg.robot.tool_com)
+    check_home(cfg, robot)
+    return robot
 
 
 def build_task(name: str, cfg: CellConfig, robot: RobotModel, force_source: str = "virtual") -> tuple[Any, float]:
@@ -32,6 +36,7 @@ def build_task(name: str, cfg: CellConfig, robot: RobotModel, force_source: str 
         from tasks.wipe import WipeTask, load_wipe_config
 
         wcfg = load_wipe_config(cfg.tasks.get("wipe"), f"{cfg.source}: tasks.wipe")
+        check_task_force(cfg, "wipe", wcfg.max_force_n)
         try:
             task = WipeTask(wcfg, robot, cfg.scene.table_height, cfg.loop.period_s, np.asarray(cfg.robot.home))
         except ValueError as exc:
@@ -42,6 +47,7 @@ def build_task(name: str, cfg: CellConfig, robot: RobotModel, force_source: str 
         from tasks.peg_config import load_peg_config
 
         pcfg = load_peg_config(cfg.tasks.get("peg"), f"{cfg.source}: tasks.peg", force_source)
+        check_task_force(cfg, "peg", pcfg.max_force_n)
         try:
             task = PegInHoleTask(pcfg, robot, np.asarray(cfg.scene.hole_center, float), cfg.scene.table_height,
                                  cfg.loop.period_s, np.asarray(cfg.robot.home))
@@ -459,7 +465,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from tasks import lab
 
-    curve = None if args.no_curve else [int(v) for v in args.curve.split(",")] if args.curve else lab.DEFAULT_CURVE
+    curve = None if args.no_curve else args.curve if args.curve else lab.DEFAULT_CURVE
     out = lab.evaluate(_lab_config(args), Path(args.data), Path(args.out), train_samples=args.train_samples,
                        large_samples=args.large_samples, curve=curve, nthread=args.nthread, seed=args.seed or 0,
                        max_trees=args.max_trees, robot=args.robot, lofo=args.lofo)
@@ -529,7 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     def common(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--config", type=Path, default=None, help="cell config YAML (default config/cell.yaml)")
-        sp.add_argument("--seed", type=int, default=None, help="plant seed (default: the profile's)")
+        sp.add_argument("--seed", type=SEED, default=None, help="plant seed (default: the profile's)")
         sp.add_argument("--json", action="store_true", help="print one JSON object as the last stdout line")
 
     run = sub.add_parser("run", help="run a task on a cell")
@@ -546,7 +552,7 @@ def build_parser() -> argparse.ArgumentParser:
     pr = sub.add_parser("prepare", help="make a tool ready for sensorless tasks: collect, train H1, calibrate")
     pr.add_argument("--tool", choices=TOOLS, default="wipe")
     pr.add_argument("--cell", choices=("sim", "real"), default="sim")
-    pr.add_argument("--samples", type=int, default=PREPARE_SAMPLES, help="training samples to collect")
+    pr.add_argument("--samples", type=COUNT, default=PREPARE_SAMPLES, help="training samples to collect")
     pr.add_argument("--force", action="store_true", help="rebuild every artefact even if present and matching")
     pr.add_argument("--plant", default=None, help="plant profile YAML (sim cells)")
     common(pr)
@@ -578,15 +584,15 @@ def build_parser() -> argparse.ArgumentParser:
     co = sub.add_parser("collect", help="run excitation and test trajectories on a cell; write a dataset")
     co.add_argument("--cell", choices=("sim", "emulated", "real"), default=None)
     co.add_argument("--out", required=True, help="dataset folder (e.g. artifacts/data/default)")
-    co.add_argument("--samples", type=int, default=500_000, help="training samples to collect")
+    co.add_argument("--samples", type=COUNT, default=500_000, help="training samples to collect")
     co.add_argument("--family", choices=("mixed", "paper", "fourier"), default="mixed")
-    co.add_argument("--fourier-share", type=float, default=0.7,
+    co.add_argument("--fourier-share", type=float_in(0, 1, True, True), default=0.7,
                     help="mixed family: share of the training samples that are Fourier excitation")
-    co.add_argument("--plan-seed", type=int, default=0,
+    co.add_argument("--plan-seed", type=SEED, default=0,
                     help="seed of the planned trajectories (--seed is the plant's)")
-    co.add_argument("--test-trajectories", type=int, default=6)
-    co.add_argument("--test-repeats", type=int, default=5)
-    co.add_argument("--test-moves", type=int, default=4)
+    co.add_argument("--test-trajectories", type=int_in(0), default=6)
+    co.add_argument("--test-repeats", type=COUNT, default=5)
+    co.add_argument("--test-moves", type=COUNT, default=4)
     co.add_argument("--excitation", default=None, help="excitation config YAML")
     co.add_argument("--plant", default=None, help="plant profile YAML (sim cells)")
     robot_option(co, "only tm5-700 (the simulated plant's arm): ")
@@ -597,11 +603,11 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--data", required=True, help="dataset manifest (dataset.yaml)")
     tr.add_argument("--model", choices=("P1", "P2", "D", "H1", "H2", "H3"), default="H1")
     tr.add_argument("--out", required=True, help="model folder (e.g. artifacts/models/h1)")
-    tr.add_argument("--samples", type=int, default=None)
-    tr.add_argument("--window", type=int, default=None)
+    tr.add_argument("--samples", type=int_in(100), default=None)
+    tr.add_argument("--window", type=int_in(1, 50), default=None)
     tr.add_argument("--grouping", choices=("own", "paper", "per_joint", "full"), default=None)
     tr.add_argument("--derivatives", choices=("zero_phase", "causal"), default="zero_phase")
-    tr.add_argument("--nthread", type=int, default=2)
+    tr.add_argument("--nthread", type=NTHREAD, default=2)
     robot_option(tr, "the dataset's ")
     common(tr)
     tr.set_defaults(func=cmd_train)
@@ -609,14 +615,14 @@ def build_parser() -> argparse.ArgumentParser:
     ev = sub.add_parser("evaluate", help="compare P1/P2/D/H1/H2/H3 on held-out trajectories")
     ev.add_argument("--data", required=True, help="dataset manifest (dataset.yaml)")
     ev.add_argument("--out", required=True, help="report folder (e.g. artifacts/eval/default)")
-    ev.add_argument("--train-samples", type=int, default=24_000)
-    ev.add_argument("--large-samples", type=int, default=500_000)
-    ev.add_argument("--curve", default=None, help="learning-curve sizes, comma-separated")
+    ev.add_argument("--train-samples", type=int_in(100), default=24_000)
+    ev.add_argument("--large-samples", type=int_in(100), default=500_000)
+    ev.add_argument("--curve", type=int_list(100), default=None, help="learning-curve sizes, comma-separated")
     ev.add_argument("--no-curve", action="store_true")
     ev.add_argument("--lofo", action="store_true",
                     help="also leave each training file out in turn: P1, P2, H1 fitted on the others, scored on it")
-    ev.add_argument("--max-trees", type=int, default=None)
-    ev.add_argument("--nthread", type=int, default=2)
+    ev.add_argument("--max-trees", type=COUNT, default=None)
+    ev.add_argument("--nthread", type=NTHREAD, default=2)
     ev.add_argument("--plant", default=None, help="plant profile whose noise floor the report cites")
     robot_option(ev, "the dataset's ")
     common(ev)
@@ -631,9 +637,9 @@ def build_parser() -> argparse.ArgumentParser:
     im.add_argument("--loaded", nargs="+", action="extend", metavar="PATH",
                     help="CSV files or folders recorded with the payload (default: the loaded harmonic runs)")
     im.add_argument("--out", required=True, help="dataset folder (e.g. artifacts/data/ur10e)")
-    im.add_argument("--max-gap-s", type=float, default=0.05,
+    im.add_argument("--max-gap-s", type=float_in(0, 60, lo_open=True), default=0.05,
                     help="a time step longer than this starts a new trajectory (s)")
-    im.add_argument("--payload-kg", type=float, default=2.805,
+    im.add_argument("--payload-kg", type=float_in(0, 100), default=2.805,
                     help="payload of the --loaded logs (default: the published 2.805 kg of *harm50secLoad)")
     common(im)
     im.set_defaults(func=cmd_import)
@@ -641,36 +647,38 @@ def build_parser() -> argparse.ArgumentParser:
     em = sub.add_parser("emulate", help="serve a device emulator on this machine until Ctrl+C")
     em.add_argument("device", choices=("arm", "sensor", "cell"),
                     help="cell: plant + arm + sensor emulators, endpoints as JSON on stdout, faults on stdin")
-    em.add_argument("--port", type=int, default=5020, help="TCP port for the arm emulator (127.0.0.1)")
+    em.add_argument("--port", type=PORT, default=5020, help="TCP port for the arm emulator (127.0.0.1)")
     em.add_argument("--kinematic", action="store_true", help="arm: a simple kinematic plant instead of MuJoCo")
     em.add_argument("--config", type=Path, default=None)
-    em.add_argument("--seed", type=int, default=None)
+    em.add_argument("--seed", type=SEED, default=None)
     em.add_argument("--plant", default=None, help="plant profile YAML")
     em.add_argument("--scene", choices=("free", "table", "peg"), default=None)
     em.set_defaults(func=cmd_emulate)
 
     b = sub.add_parser("bench", help="benchmarks that print the project's measured figures")
     b.add_argument("what", choices=("sim", "plant", "drivers", "model", "peg-in-hole"))
-    b.add_argument("--trials", type=int, default=50, help="randomised insertions (bench peg-in-hole)")
-    b.add_argument("--max-offset-mm", type=float, default=2.0,
+    b.add_argument("--trials", type=COUNT, default=50, help="randomised insertions (bench peg-in-hole)")
+    b.add_argument("--max-offset-mm", type=float_in(0, 20), default=2.0,
                    help="hole offset drawn in +-this on x and y (bench peg-in-hole)")
-    b.add_argument("--max-tilt-deg", type=float, default=2.0,
+    b.add_argument("--max-tilt-deg", type=float_in(0, 10), default=2.0,
                    help="hole tilt drawn in +-this about x and y (bench peg-in-hole)")
-    b.add_argument("--peg-diameter-mm", type=float, default=None,
+    b.add_argument("--peg-diameter-mm", type=float_in(1, 100, lo_open=True), default=None,
                    help="peg diameter (bench peg-in-hole; default: the plant profile's, 21.4)")
     b.add_argument("--force-source", choices=("virtual", "sensor"), default="virtual",
                    help="bench peg-in-hole: what the task regulates with")
-    b.add_argument("--only", type=int, nargs="+", default=None, metavar="K",
+    b.add_argument("--only", type=int_in(0), nargs="+", default=None, metavar="K",
                    help="bench peg-in-hole: run only these trial numbers (the same draws as in the full bench)")
     b.add_argument("--record", action="store_true",
                    help="bench peg-in-hole: log every trial run (runs/<date>-bench-peg/trial_NNN, as `run` logs)")
-    b.add_argument("--n", type=int, default=500, help="samples (bench drivers)")
+    b.add_argument("--n", type=COUNT, default=500, help="samples (bench drivers)")
     b.add_argument("--data", default=None, help="dataset manifest (bench model)")
     b.add_argument("--model", default=None, help="model artefact (bench model; default: train an H1)")
-    b.add_argument("--calls", type=int, default=5000, help="single-sample predictions timed (bench model)")
-    b.add_argument("--train-samples", type=int, default=24_000, help="H1 training samples (bench model, no --model)")
-    b.add_argument("--fit-samples", type=int, default=500_000, help="samples for the timed XGBoost fit (bench model)")
-    b.add_argument("--nthread", type=int, default=2)
+    b.add_argument("--calls", type=COUNT, default=5000, help="single-sample predictions timed (bench model)")
+    b.add_argument("--train-samples", type=int_in(100), default=24_000,
+                   help="H1 training samples (bench model, no --model)")
+    b.add_argument("--fit-samples", type=int_in(100), default=500_000,
+                   help="samples for the timed XGBoost fit (bench model)")
+    b.add_argument("--nthread", type=NTHREAD, default=2)
     b.add_argument("--plant", default=None, help="plant profile YAML (bench plant)")
     robot_option(b, "bench model: the dataset's ")
     common(b)
@@ -687,11 +695,16 @@ def main(argv: list[str] | None = None) -> int:
     # pymodbus logs every failed connect at ERROR; the driver reports link loss itself.
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     try:
-        return int(args.func(args))
+        with sigterm_as_interrupt():
+            code = int(args.func(args))
+        return 143 if code == 130 and received_sigterm() else code
     except CellError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        if isinstance(exc, Terminated):
+            print("terminated (SIGTERM): the arm was stopped", file=sys.stderr)
+            return 143
         print("interrupted", file=sys.stderr)
         return 130
 

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from cell.configio import join, load_dataclass, read_yaml, require, require_len
+from drivers.errors import ConfigError
 
 TOOLS = ("wipe", "peg")  # the tools a cell config knows (virtual_sensor.by_tool keys)
 
@@ -71,6 +72,18 @@ class LoopConfig:
         require(0 < self.slow_cycle_fraction <= 1, f"{where}.slow_cycle_fraction", "must lie in (0, 1]")
 
 
+# Physical upper bounds of the safety limits (SafetyConfig.validate).
+MAX_TOOL_FORCE_N = 200.0  # the F/T sensor's rated range: a force it cannot measure it cannot score
+MAX_TOOL_TORQUE_NM = 10.0  # the shipped limit; the sensor is rated 4 N·m, the tasks' moments stay far below
+MAX_TCP_SPEED = 1.0  # m/s: collaborative operation (the tasks command under 0.1)
+WORKSPACE_REACH_M = 1.0  # the TM5-700 reaches 0.7 m from its shoulder
+MAX_INVALID_CYCLES = 10  # sensor readings missing in a row before a stop: 80 ms at 8 ms
+
+
+def _within(value: float, lo: float, hi: float, where: str, unit: str) -> None:
+    require(lo < value <= hi, where, f"must lie in ({lo:g}, {hi:g}] {unit}, got {value:g}")
+
+
 @dataclass
 class SafetyConfig:
     """Limits checked every control cycle; a breach stops the arm."""
@@ -85,15 +98,23 @@ class SafetyConfig:
     max_sensor_invalid_cycles: int = 3
 
     def validate(self, where: str) -> None:
-        require(self.max_tool_force_n > 0, f"{where}.max_tool_force_n", "must be > 0")
-        require(self.max_tool_torque_nm > 0, f"{where}.max_tool_torque_nm", "must be > 0")
+        # Upper bounds are physical: a limit the cell cannot measure or the arm cannot reach protects
+        # nothing, and a typo (1e6 for 150) must not switch a limit off.
+        _within(self.max_tool_force_n, 0, MAX_TOOL_FORCE_N, f"{where}.max_tool_force_n", "N")
+        _within(self.max_tool_torque_nm, 0, MAX_TOOL_TORQUE_NM, f"{where}.max_tool_torque_nm", "N·m")
         require(0 < self.joint_torque_fraction <= 1, f"{where}.joint_torque_fraction", "must lie in (0, 1]")
         require(0 < self.joint_speed_fraction <= 1, f"{where}.joint_speed_fraction", "must lie in (0, 1]")
         require(len(self.workspace_min) == 3, f"{where}.workspace_min", "must have 3 values")
         require(len(self.workspace_max) == 3, f"{where}.workspace_max", "must have 3 values")
         require(all(a < b for a, b in zip(self.workspace_min, self.workspace_max, strict=True)),
                 f"{where}.workspace_min", "must be below workspace_max on every axis")
-        require(self.max_tcp_speed > 0, f"{where}.max_tcp_speed", "must be > 0")
+        for name in ("workspace_min", "workspace_max"):
+            values = getattr(self, name)
+            require(all(abs(v) <= WORKSPACE_REACH_M for v in values), f"{where}.{name}",
+                    f"must lie within +-{WORKSPACE_REACH_M} m of the base (beyond the arm's reach), got {values}")
+        _within(self.max_tcp_speed, 0, MAX_TCP_SPEED, f"{where}.max_tcp_speed", "m/s")
+        require(1 <= self.max_sensor_invalid_cycles <= MAX_INVALID_CYCLES, f"{where}.max_sensor_invalid_cycles",
+                f"must lie in 1..{MAX_INVALID_CYCLES} control periods, got {self.max_sensor_invalid_cycles}")
 
 
 @dataclass
@@ -264,11 +285,43 @@ class CellConfig:
 
     source: str = ""  # file this was loaded from (not a config key)
 
+    def validate(self, where: str) -> None:
+        for task in self.tasks:
+            require(task in TASK_SECTIONS, join(where, "tasks"),
+                    f"unknown task '{task}' (known: {', '.join(TASK_SECTIONS)})")
+
+
+TASK_SECTIONS = ("wipe", "peg")  # config sections under `tasks`
+# A cell config names every section: a missing one would silently run built-in defaults that differ
+# from the shipped file (config/cell.yaml is the documented starting point).
+REQUIRED_SECTIONS = ("robot", "scene", "loop", "safety", "devices", "plant", "virtual_sensor")
+
 
 def load_config(path: Path | None = None) -> CellConfig:
     path = Path(path) if path is not None else DEFAULT_CONFIG
     data = read_yaml(path)
+    if not data:
+        raise ConfigError(f"{path}: the file is empty: a cell config needs its sections (start from {DEFAULT_CONFIG})")
+    missing = [k for k in REQUIRED_SECTIONS if k not in data]
+    if missing:
+        raise ConfigError(f"{path}: missing section '{missing[0]}' (a cell config names "
+                          f"{', '.join(REQUIRED_SECTIONS)}; start from {DEFAULT_CONFIG})")
     data.pop("source", None)
     cfg = load_dataclass(CellConfig, data, f"{path}:")
     cfg.source = str(path)
     return cfg
+
+
+def check_home(cfg: CellConfig, robot: Any) -> None:
+    """`robot.home` within the arm's joint limits (`robot`: a cell.robot.RobotModel): a home outside
+    them is a posture the arm cannot take, or one in collision."""
+    lim = robot.limits
+    for j, (q, lo, hi) in enumerate(zip(cfg.robot.home, lim.lower, lim.upper, strict=True)):
+        require(lo <= q <= hi, f"{cfg.source}: robot.home[{j}]",
+                f"({q:g} rad) must lie within joint {j + 1}'s limits [{lo:.4g}, {hi:.4g}] rad")
+
+
+def check_task_force(cfg: CellConfig, task: str, max_force_n: float) -> None:
+    """A task's own force limit within the cell's: the task aborts first, the safety stop is the backstop."""
+    require(max_force_n <= cfg.safety.max_tool_force_n, f"{cfg.source}: tasks.{task}.max_force_n",
+            f"({max_force_n:g} N) must not exceed safety.max_tool_force_n ({cfg.safety.max_tool_force_n:g} N)")

@@ -15,6 +15,7 @@ import numpy as np
 
 from cell.recorder import Recorder
 from cell.safety import SafetyMonitor
+from cell.signals import Terminated
 from drivers.errors import CellError, DriverError, SafetyStopError
 from drivers.interfaces import Arm, ArmState, Wrench
 
@@ -231,8 +232,9 @@ class ControlLoop:
             outcome, reason = "error", str(exc)
             self.task.abort(str(exc))
             log.error("%s", exc)
-        except KeyboardInterrupt:
-            outcome, reason = "interrupted", "interrupted by the operator (Ctrl+C)"
+        except KeyboardInterrupt as exc:
+            outcome = "interrupted"
+            reason = "terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted by the operator (Ctrl+C)"
             self.task.abort(reason)
             log.warning("interrupted: stopping the arm")
         finally:

@@ -18,6 +18,7 @@ from cell.loop import ControlLoop, Observation, OpenCell
 from cell.recorder import Recorder
 from cell.robot import RobotModel
 from cell.safety import SafetyMonitor
+from cell.signals import raise_if_interrupted
 from drivers.interfaces import ArmState, Wrench
 from sim.cell import SimCell
 from sim.drivers import SimArm, SimForceSensor
@@ -153,6 +154,7 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
         result = loop.run()
     finally:
         holder.close()
+    raise_if_interrupted(result.outcome)  # Ctrl+C / SIGTERM ends the bench, not just this trial
     s = task.summary()
     outcome = s["outcome"] if result.outcome in ("done", "failed") else result.outcome
     reason = s["reason"] or result.reason

@@ -46,6 +46,7 @@ from cell.observer import make_observer
 from cell.recorder import Recorder, new_run_dir, read_log
 from cell.robot import RobotModel
 from cell.safety import SafetyMonitor
+from cell.signals import raise_if_interrupted
 from cell.trajectory import JointMove, tool_down_pose
 from cell.virtual_sensor import (
     OBSERVERS,
@@ -300,6 +301,7 @@ def calibrate(
                                dt, 120.0 + load_s, cfg.loop.slow_cycle_fraction)
             res = loop.run()
             applier.release()
+            raise_if_interrupted(res.outcome)
             if res.outcome != "done":
                 raise CellError(f"calibrate: posture {i + 1} ended '{res.outcome}' ({res.reason}); "
                                 f"recording kept in {run_dir}")

@@ -57,6 +57,7 @@ from cell.recorder import Recorder, new_run_dir, read_log
 from cell.robot import RobotModel, load_robot
 from cell.robots import load_robot_spec, robot_model
 from cell.safety import SafetyMonitor
+from cell.signals import raise_if_interrupted
 from drivers.errors import ConfigError, DataError
 from tasks.collect import PlaybackTask
 from tasks.lab_checks import leave_one_file_out, payload_transfer, regime_errors, uncertainty_report
@@ -151,6 +152,7 @@ def collect(
                 plan = Plan(lead + plan.segments, dt, plan.info)
             res = _play(plan, split, cell, rec_cfg, robot)
             results[split] = res
+            raise_if_interrupted(res["outcome"])
             if res["outcome"] != "done":
                 raise DataError(f"collect {split}: the run ended '{res['outcome']}' ({res['reason']}); "
                                 f"recording kept in {res['run_dir']}")
@@ -597,7 +599,7 @@ def bench_model(
     * `stock_predict_p50_us`: the same sample path with XGBoost's own `inplace_predict` per booster;
       `speedup` = stock p50 / hybrid p50 (both measured here, same features, same physics);
     * `max_abs_diff_nm`: the two paths against each other and against the batch model;
-    * `fit_500k_s`: fitting the model's XGBoost part on `fit_samples` samples with `nthread` threads;
+    * `fit_s`: fitting the model's XGBoost part on `fit_samples` samples with `nthread` threads;
     * `batch_samples_per_s`: `LearnedModel.predict` (physics + features + trees) over the test split.
 
     The model is `model_path` (an artefact) or, without it, an H1 trained on `train_samples` of the
@@ -682,7 +684,7 @@ def bench_model(
         "stock_predict_p99_us": round(float(np.percentile(t_stock, 99)), 2),
         "speedup": round(s50 / p50, 2), "calls": n_calls, "includes_uncertainty": with_sigma,
         "max_abs_diff_vs_stock_nm": diff_stock, "max_abs_diff_vs_batch_nm": diff_batch,
-        "fit_500k_s": round(forest.fit_seconds, 2), "fit_samples": len(big), "fit_physics_s": round(t_phys, 2),
+        "fit_s": round(forest.fit_seconds, 2), "fit_samples": len(big), "fit_physics_s": round(t_phys, 2),
         "fit_trees": forest.trees(), "nthread": nthread,
         "batch_samples_per_s": round(batch_rate, 0), "batch_samples": len(tests),
         **bench_virtual_sensor(cfg, robot, model, tests, min(calls, 3000)),

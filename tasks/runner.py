@@ -15,6 +15,7 @@ from cell.recorder import Recorder, new_run_dir, read_log
 from cell.report import plot_force_run
 from cell.robot import RobotModel
 from cell.safety import SafetyMonitor
+from cell.signals import interrupts_deferred
 from drivers.interfaces import ArmState, Wrench
 from tasks.base import SETUP_STATES
 
@@ -115,47 +116,49 @@ def run_task(
         cfg.loop.slow_cycle_fraction, ground_truth=tap,
     )
     result = loop.run()
-    summary: dict[str, Any] = dict(task.summary())
-    if result.outcome != "done":
-        summary["outcome"] = "failed" if result.outcome == "failed" else result.outcome
-        summary["reason"] = summary.get("reason") or result.reason
-    summary.update(
-        cell=cell.kind,
-        force_source=cell.force.name,
-        cycles=result.cycles,
-        sim_time_s=result.sim_time_s,
-        wall_time_s=result.wall_time_s,
-        real_time_factor=result.sim_time_s / result.wall_time_s if result.wall_time_s > 0 else None,
-        timing=result.timing,
-        safety_stop=result.outcome == "safety_stop",
-    )
-    if tap is not None:
-        summary.update(tap.summary(summary))
-    source_summary = getattr(cell.force, "summary", None)
-    if callable(source_summary):
-        summary.update(source_summary())
-    if extra_summary:
-        summary.update(extra_summary)
-    if recorder is not None and run_dir is not None:
-        summary["run_dir"] = str(run_dir)
-        if recorder.rows_written:
-            try:
-                table = read_log(run_dir)
-                # A task may summarise its own log (e.g. virtual-vs-measured wrench errors) and draw
-                # its own figure; the default is the normal force against its setpoint.
-                log_summary = getattr(task, "log_summary", None)
-                if callable(log_summary):
-                    summary.update(log_summary(table))
-                plot = getattr(task, "plot_run", None)
-                title = f"{task.name} on the {cell.kind} cell: {summary['outcome']}"
-                if callable(plot):
-                    png = plot(table, run_dir / "plot.png", title)
-                else:
-                    png = plot_force_run(table, run_dir / "plot.png", title, force_label=(
-                        "Fz virtual sensor (in the loop)" if cell.force.name == "virtual"
-                        else "Fz used by the controller"))
-                summary["plot"] = str(png)
-            except Exception as exc:  # a plot must never lose the recording or the summary
-                log.error("could not draw the plot: %s", exc)
-        recorder.write_summary(summary)
+    # The arm is stopped: an interrupt now waits for the summary and the plot.
+    with interrupts_deferred():
+        summary: dict[str, Any] = dict(task.summary())
+        if result.outcome != "done":
+            summary["outcome"] = "failed" if result.outcome == "failed" else result.outcome
+            summary["reason"] = summary.get("reason") or result.reason
+        summary.update(
+            cell=cell.kind,
+            force_source=cell.force.name,
+            cycles=result.cycles,
+            sim_time_s=result.sim_time_s,
+            wall_time_s=result.wall_time_s,
+            real_time_factor=result.sim_time_s / result.wall_time_s if result.wall_time_s > 0 else None,
+            timing=result.timing,
+            safety_stop=result.outcome == "safety_stop",
+        )
+        if tap is not None:
+            summary.update(tap.summary(summary))
+        source_summary = getattr(cell.force, "summary", None)
+        if callable(source_summary):
+            summary.update(source_summary())
+        if extra_summary:
+            summary.update(extra_summary)
+        if recorder is not None and run_dir is not None:
+            summary["run_dir"] = str(run_dir)
+            if recorder.rows_written:
+                try:
+                    table = read_log(run_dir)
+                    # A task may summarise its own log (e.g. virtual-vs-measured wrench errors) and draw
+                    # its own figure; the default is the normal force against its setpoint.
+                    log_summary = getattr(task, "log_summary", None)
+                    if callable(log_summary):
+                        summary.update(log_summary(table))
+                    plot = getattr(task, "plot_run", None)
+                    title = f"{task.name} on the {cell.kind} cell: {summary['outcome']}"
+                    if callable(plot):
+                        png = plot(table, run_dir / "plot.png", title)
+                    else:
+                        png = plot_force_run(table, run_dir / "plot.png", title, force_label=(
+                            "Fz virtual sensor (in the loop)" if cell.force.name == "virtual"
+                            else "Fz used by the controller"))
+                    summary["plot"] = str(png)
+                except Exception as exc:  # a plot must never lose the recording or the summary
+                    log.error("could not draw the plot: %s", exc)
+            recorder.write_summary(summary)
     return summary

@@ -63,5 +63,6 @@ def test_train_evaluate_and_bench_on_the_tiny_dataset(tiny_dataset, tmp_path):
     assert saved["mean_rmse_j123"] == ev["mean_rmse_j123"]
     b = bench_model(cfg, out / "dataset.yaml", tmp_path / "h1", fit_samples=3000, calls=300)
     assert b["max_abs_diff_vs_stock_nm"] < 1e-3 and b["max_abs_diff_vs_batch_nm"] < 1e-3
-    for key in ("hybrid_predict_p99_us", "stock_predict_p50_us", "speedup", "fit_500k_s", "batch_samples_per_s"):
+    keys = ("hybrid_predict_p99_us", "stock_predict_p50_us", "speedup", "fit_s", "fit_samples", "batch_samples_per_s")
+    for key in keys:
         assert np.isfinite(b[key])

@@ -1,0 +1,190 @@
+"""Bad input and abuse (issue 16, first part): strict YAML, physical bounds on the safety limits, complete
+cell configs, one validation of CLI arguments, and SIGTERM handled as Ctrl+C."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+from pathlib import Path
+
+import pytest
+import yaml
+
+from cell.config import DEFAULT_CONFIG, load_config
+from cell.configio import read_yaml
+from cell.signals import Terminated, interrupts_deferred, raise_if_interrupted, sigterm_as_interrupt
+from drivers.errors import ConfigError
+from main import main
+
+
+def shipped() -> dict:
+    return yaml.safe_load(DEFAULT_CONFIG.read_text())
+
+
+def write(tmp_path: Path, data: dict, name: str = "cell.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    return p
+
+
+def config_error(path: Path) -> str:
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    message = str(exc.value)
+    assert "\n" not in message and str(path) in message
+    return message
+
+
+# ------------------------------------------------------------------------------------------- YAML
+def test_duplicate_keys_aliases_and_non_utf8_are_refused_with_their_line(tmp_path):
+    dup = tmp_path / "dup.yaml"
+    dup.write_text("safety:\n  max_tool_force_n: 150\n  max_tool_force_n: 1000\n")
+    with pytest.raises(ConfigError, match=r"line 3 .*duplicate key 'max_tool_force_n'"):
+        read_yaml(dup)
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text("a: &a [x, x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a]\n"
+                    "c: [*b, *b, *b, *b, *b, *b, *b, *b, *b]\n")
+    with pytest.raises(ConfigError, match="aliases"):
+        read_yaml(bomb)
+    latin = tmp_path / "latin.yaml"
+    latin.write_bytes(b"robot:\n  note: caf\xe9\n")
+    with pytest.raises(ConfigError, match=r"line 2 is not UTF-8"):
+        read_yaml(latin)
+    big = tmp_path / "big.yaml"
+    big.write_text("a: " + "x" * (2 << 20) + "\n")
+    with pytest.raises(ConfigError, match="too large"):
+        read_yaml(big)
+
+
+def test_every_shipped_yaml_file_reads_strictly():
+    root = Path(__file__).resolve().parents[1] / "config"
+    files = sorted(root.rglob("*.yaml"))
+    assert len(files) >= 5
+    for f in files:
+        read_yaml(f)  # no duplicate keys, no aliases, UTF-8
+
+
+# ------------------------------------------------------------------------------------------- config
+def test_an_empty_or_incomplete_config_is_refused_not_run_on_defaults(tmp_path):
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    assert "empty" in config_error(empty)
+    data = shipped()
+    del data["virtual_sensor"]
+    assert "missing section 'virtual_sensor'" in config_error(write(tmp_path, data))
+
+
+def test_a_typo_in_a_task_section_is_named(tmp_path):
+    data = shipped()
+    data["tasks"]["wpie"] = data["tasks"].pop("wipe")
+    assert "unknown task 'wpie'" in config_error(write(tmp_path, data))
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("max_tool_force_n", 1e6, "(0, 200] N"),
+    ("max_tool_force_n", 0.0, "(0, 200] N"),
+    ("max_tool_torque_nm", 50.0, "(0, 10] N·m"),
+    ("max_tcp_speed", 5.0, "(0, 1] m/s"),
+    ("max_sensor_invalid_cycles", -1, "1..10"),
+    ("max_sensor_invalid_cycles", 1_000_000_000, "1..10"),
+    ("workspace_max", [0.8, 0.8, 50.0], "beyond the arm's reach"),
+    ("workspace_min", [-9.0, -0.8, 0.0], "beyond the arm's reach"),
+])
+def test_safety_limits_have_physical_upper_bounds(tmp_path, key, value, words):
+    data = shipped()
+    data["safety"][key] = value
+    message = config_error(write(tmp_path, data))
+    assert f"safety.{key}" in message and words in message
+
+
+def test_the_shipped_limits_are_within_the_bounds():
+    cfg = load_config()
+    assert 0 < cfg.safety.max_tool_force_n <= 200 and cfg.safety.max_tcp_speed <= 1.0
+
+
+def test_a_task_force_limit_above_the_cells_is_refused(tmp_path, capsys):
+    data = shipped()
+    data["tasks"]["wipe"]["max_force_n"] = 180.0
+    data["tasks"]["wipe"]["force_setpoint_n"] = 170.0
+    code = main(["-q", "run", "wipe", "--force-source", "sensor", "--config", str(write(tmp_path, data))])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert "tasks.wipe.max_force_n (180 N) must not exceed safety.max_tool_force_n (150 N)" in err[0]
+
+
+def test_a_home_outside_the_joint_limits_is_refused(tmp_path, capsys):
+    data = shipped()
+    data["robot"]["home"][2] = 4.0
+    code = main(["-q", "run", "wipe", "--force-source", "sensor", "--config", str(write(tmp_path, data))])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert "robot.home[2] (4 rad) must lie within joint 3's limits" in err[0]
+
+
+# ------------------------------------------------------------------------------------------- CLI args
+@pytest.mark.parametrize("argv, words", [
+    (["run", "wipe", "--seed", "-1"], "--seed: -1 must be in 0.."),
+    (["bench", "peg-in-hole", "--max-offset-mm", "nan"], "--max-offset-mm: nan must be a finite number"),
+    (["bench", "peg-in-hole", "--max-tilt-deg", "inf"], "--max-tilt-deg: inf must be a finite number"),
+    (["bench", "peg-in-hole", "--peg-diameter-mm", "-5"], "--peg-diameter-mm: -5 must lie in"),
+    (["bench", "drivers", "--n", "0"], "--n: 0 must be >= 1"),
+    (["evaluate", "--data", "d.yaml", "--out", "o", "--curve", "a,b"], "--curve: 'a' is not an integer"),
+    (["collect", "--out", "o", "--samples", "-1"], "--samples: -1 must be >= 1"),
+    (["train", "--data", "d.yaml", "--out", "o", "--model", "H1", "--samples", "-5"], "--samples: -5 must be >= 100"),
+    (["evaluate", "--data", "d.yaml", "--out", "o", "--train-samples", "0"], "--train-samples: 0 must be >= 100"),
+    (["collect", "--out", "o", "--fourier-share", "1.5"], "--fourier-share: 1.5 must lie in (0, 1)"),
+])
+def test_bad_arguments_are_one_line_errors_with_exit_2(argv, words, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert words in err[-1] and "Traceback" not in "\n".join(err)
+
+
+# ------------------------------------------------------------------------------------------- signals
+def test_sigterm_is_raised_as_an_interrupt_inside_the_block_only():
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Terminated), sigterm_as_interrupt():
+        os.kill(os.getpid(), signal.SIGTERM)
+        signal.sigtimedwait([], 0.5) if hasattr(signal, "sigtimedwait") else None
+    assert signal.getsignal(signal.SIGTERM) == before
+
+
+def test_interrupts_wait_for_the_end_of_a_deferred_block():
+    done = []
+    with pytest.raises(Terminated), sigterm_as_interrupt(), interrupts_deferred():
+        os.kill(os.getpid(), signal.SIGTERM)
+        done.append("the summary was written")
+    assert done == ["the summary was written"]
+
+
+def test_an_interrupted_run_ends_the_whole_command():
+    raise_if_interrupted("done")
+    raise_if_interrupted("safety_stop")
+    with pytest.raises(KeyboardInterrupt):
+        raise_if_interrupted("interrupted")
+
+
+@pytest.mark.slow
+def test_sigterm_during_a_run_stops_the_arm_writes_the_summary_and_exits_143(capsys, monkeypatch):
+    from tasks.wipe import WipeTask
+
+    real_step = WipeTask.step
+    calls = {"n": 0}
+
+    def step(self, obs):
+        calls["n"] += 1
+        if calls["n"] == 300:  # mid-approach: the arm is moving
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real_step(self, obs)
+
+    monkeypatch.setattr(WipeTask, "step", step)
+    code = main(["-q", "run", "wipe", "--force-source", "sensor", "--json"])
+    assert code == 143
+    runs = sorted(Path("runs").iterdir())
+    summary = json.loads((runs[-1] / "summary.json").read_text())
+    assert summary["outcome"] == "interrupted" and summary["reason"] == "terminated (SIGTERM)"
+    assert 299 <= summary["cycles"] <= 302  # the 300th step (cycle 299) or within a couple of periods after
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL or callable(signal.getsignal(signal.SIGTERM))
