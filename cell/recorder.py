@@ -8,7 +8,6 @@ renamed into place, so a run killed at any moment leaves every completed chunk r
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import logging
 import os
 from pathlib import Path
@@ -18,7 +17,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import yaml
 
-from cell.configio import json_default
+from cell.configio import dumps_strict
+from drivers.errors import ConfigError, RecordingError
 
 log = logging.getLogger(__name__)
 
@@ -27,12 +27,20 @@ def new_run_dir(root: Path, task: str) -> Path:
     """A new folder `root`/<timestamp>-<task>[-k] (its step log's `log/` is the Recorder's)."""
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     base = Path(root) / f"{stamp}-{task}"
-    path, k = base, 1
-    while path.exists():
-        k += 1
-        path = base.with_name(f"{base.name}-{k}")
-    path.mkdir(parents=True)
-    return path
+    try:
+        base.parent.mkdir(parents=True, exist_ok=True)
+        # Created, not checked then created: two runs starting in the same second each get their own.
+        for k in range(1, 10_000):
+            path = base if k == 1 else base.with_name(f"{base.name}-{k}")
+            try:
+                path.mkdir()
+                return path
+            except FileExistsError:
+                continue
+    except OSError as exc:
+        raise ConfigError(f"{root}: cannot create a run folder there: {exc.strerror or exc} "
+                          "(recording.directory in the config, or --no-record)") from None
+    raise ConfigError(f"{root}: 10000 run folders named {base.name}* already exist")
 
 
 class Recorder:
@@ -68,8 +76,11 @@ class Recorder:
         table = pa.table(cols)
         final = self.log_dir / f"part-{self._parts:05d}.parquet"
         tmp = final.with_name(f".{final.name}.tmp")  # dot-files are skipped by readers of the folder
-        pq.write_table(table, tmp)
-        os.replace(tmp, final)
+        try:
+            pq.write_table(table, tmp)
+            os.replace(tmp, final)
+        except OSError as exc:
+            raise RecordingError(f"{final}: cannot write the step log: {exc.strerror or exc}") from None
         self._parts += 1
         self.rows_written += len(self._rows)
         self._rows = []
@@ -83,12 +94,19 @@ class Recorder:
             self.closed = True
 
     def write_config(self, config: dict[str, Any]) -> None:
-        (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+        _write(self.run_dir / "config.yaml", yaml.safe_dump(config, sort_keys=False))
 
     def write_summary(self, summary: dict[str, Any]) -> Path:
         path = self.run_dir / "summary.json"
-        path.write_text(json.dumps(summary, indent=2, default=json_default) + "\n")
+        _write(path, dumps_strict(summary, indent=2) + "\n")
         return path
+
+
+def _write(path: Path, text: str) -> None:
+    try:
+        path.write_text(text)
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot write: {exc.strerror or exc}") from None
 
 
 def read_log(run_dir: Path) -> pa.Table:

@@ -21,6 +21,10 @@ class DataError(CellError):
     exit_code = 2
 
 
+class RecordingError(CellError):
+    """The run's recording could not be written (disk full, folder not writable); the arm is stopped."""
+
+
 class DriverError(CellError):
     """Something went wrong at the hardware boundary."""
 

@@ -123,6 +123,10 @@ class Arm(ABC):
         self._lifecycle = Lifecycle.DISCONNECTED
         self._fault_reason: str | None = None
         self._last_sent: np.ndarray | None = None
+        # Whether this connection was ever armed: only then may it have moved the arm, and only then
+        # does disconnecting command a stop (a read-only session, `main.py status`, leaves the robot
+        # side as it found it: a stop there latches a hold another program would have to clear).
+        self._was_armed = False
         self._lock = threading.RLock()
 
     # ----------------------------------------------------------------------------- lifecycle
@@ -144,13 +148,15 @@ class Arm(ABC):
                 return
             self._connect()
             self._lifecycle = Lifecycle.CONNECTED
+            self._was_armed = False
 
     def disconnect(self) -> None:
         with self._lock:
             if self._lifecycle is Lifecycle.DISCONNECTED:
                 return
             try:
-                self.stop()
+                if self._was_armed:
+                    self.stop()
             except DriverError as exc:  # a dead link cannot take a stop; the device's watchdog does
                 log.warning("stop before disconnect failed: %s", exc)
             finally:
@@ -170,6 +176,7 @@ class Arm(ABC):
             self._last_sent = np.array(state.q, dtype=float)
             self._fault_reason = None
             self._lifecycle = Lifecycle.ARMED
+            self._was_armed = True
 
     def fault(self, reason: str) -> None:
         """Enter FAULT: stop at once and refuse commands until re-armed."""

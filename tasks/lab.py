@@ -480,7 +480,6 @@ def evaluate(
     """
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     robot_name = robot
     robot = lab_robot(cfg, robot_name)
     opts = TrainOptions(nthread=nthread, seed=seed, max_trees=max_trees, **lab_settings(robot_name))
@@ -492,6 +491,7 @@ def evaluate(
     large = subsample_segments(everything, large_samples, seed)
     log.info("evaluate: %d training samples available, %d test trajectories (%d samples)",
              len(everything), len(tests), sum(len(t) for t in tests))
+    out_dir.mkdir(parents=True, exist_ok=True)  # only once the data is known good: a refusal leaves nothing
 
     models: dict[str, Any] = {}
     fit_s: dict[str, float] = {}

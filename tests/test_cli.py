@@ -77,7 +77,7 @@ def write_config(tmp_path: Path, mutate) -> Path:
     ("mutate", "needle"),
     [
         (lambda d: d["loop"].update(period_s="fast"), "loop.period_s must be a number"),
-        (lambda d: d["safety"].update(max_tool_force_n=-1), "safety.max_tool_force_n must be > 0"),
+        (lambda d: d["safety"].update(max_tool_force_n=-1), "safety.max_tool_force_n must lie in (0, 200] N, got -1"),
         (lambda d: d["tasks"]["wipe"].update(force_setpoint_n=500), "tasks.wipe.force_setpoint_n must lie in"),
         (lambda d: d["tasks"]["wipe"].update(speeed_mps=1), "unknown key 'speeed_mps'"),
         (lambda d: d["robot"].update(home=[0, 1, 2]), "robot.home must have 6 values"),

@@ -188,3 +188,79 @@ def test_sigterm_during_a_run_stops_the_arm_writes_the_summary_and_exits_143(cap
     assert summary["outcome"] == "interrupted" and summary["reason"] == "terminated (SIGTERM)"
     assert 299 <= summary["cycles"] <= 302  # the 300th step (cycle 299) or within a couple of periods after
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL or callable(signal.getsignal(signal.SIGTERM))
+
+
+# ------------------------------------------------------------------------------------------- devices
+class _CountingArm:
+    """A driver double on the real lifecycle (drivers.interfaces.Arm) that counts stop commands."""
+
+    @staticmethod
+    def make():
+        import numpy as np
+
+        from drivers.interfaces import Arm, ArmState, ArmStatus, JointLimits
+
+        class Counting(Arm):
+            def __init__(self) -> None:
+                lim = JointLimits(lower=-np.ones(6), upper=np.ones(6), velocity=np.ones(6), effort=np.ones(6) * 10)
+                super().__init__(lim, 0.008)
+                self.stops = 0
+
+            def _connect(self) -> None: ...
+            def _disconnect(self) -> None: ...
+            def _read_state(self) -> ArmState:
+                return ArmState(t=0.0, q=np.zeros(6), dq=np.zeros(6), tau=np.zeros(6), status=ArmStatus())
+            def _write_target(self, q) -> None: ...
+            def _stop(self) -> None:
+                self.stops += 1
+
+        return Counting()
+
+
+def test_a_session_that_never_armed_does_not_command_a_stop_on_disconnect():
+    arm = _CountingArm.make()
+    with arm:
+        arm.read_state()
+    assert arm.stops == 0  # `main.py status`: read-only, no hold latched on the robot side
+    with arm:
+        arm.arm()
+    assert arm.stops == 1  # a session that could have moved the arm stops it on the way out
+    with arm:
+        arm.read_state()
+    assert arm.stops == 1  # a new connection starts read-only again
+
+
+def test_runs_starting_in_the_same_second_each_get_their_own_folder(tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from cell.recorder import new_run_dir
+
+    with ThreadPoolExecutor(8) as pool:
+        dirs = list(pool.map(lambda _: new_run_dir(tmp_path / "runs", "wipe"), range(60)))
+    assert len(set(dirs)) == 60 and all(d.is_dir() for d in dirs)
+
+
+def test_an_unwritable_recording_folder_is_a_one_line_error(tmp_path, capsys):
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a file where the runs folder should be")
+    data = shipped()
+    data["recording"] = {"directory": str(blocker / "runs")}
+    code = main(["-q", "run", "wipe", "--force-source", "sensor", "--config", str(write(tmp_path, data))])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "cannot create a run folder" in err[0]
+
+
+def test_a_recording_that_cannot_be_written_is_a_recording_error(tmp_path, monkeypatch):
+    import pyarrow.parquet as pq
+
+    from cell.recorder import Recorder
+    from drivers.errors import RecordingError
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    rec = Recorder(tmp_path / "run", chunk_rows=2)
+    monkeypatch.setattr(pq, "write_table", full_disk)
+    rec.append({"t": 0.0})
+    with pytest.raises(RecordingError, match="No space left on device"):
+        rec.append({"t": 0.1})

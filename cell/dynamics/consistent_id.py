@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
 
 from cell.dynamics.consistency import is_consistent, params_from_theta, theta_from_params
 from cell.dynamics.friction import extra_columns, term_names
@@ -55,6 +56,14 @@ def _normal_equations(Y: np.ndarray, F: np.ndarray, tau: np.ndarray, w: np.ndarr
 
 def identify_consistent(robot: RobotModel, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, tau: np.ndarray,
                         cfg: IdentificationConfig, training_data_sha256: str = "") -> P2Model:
+    """See `_identify`; BLAS on one thread: its ~400 small factorisations (~130 x 110) gain nothing from
+    threads, and on a busy 2-core machine two threads made one fit 63 s instead of 6 s."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _identify(robot, q, dq, ddq, tau, cfg, training_data_sha256)
+
+
+def _identify(robot: RobotModel, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, tau: np.ndarray,
+              cfg: IdentificationConfig, training_data_sha256: str = "") -> P2Model:
     """MAP estimate of every link's 10 parameters (each a realisable body by construction) and every
     joint's losses: min |W (Y pi + F phi - tau)|^2 + |(pi - pi_nom) / scale|^2 + |phi / loss_prior|^2,
     with pi = pi(theta) in log-Cholesky coordinates and B_m, C_m, f_c >= 0 (`nonneg_losses`).
