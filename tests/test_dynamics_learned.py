@@ -40,8 +40,8 @@ def robot_module():
     return load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
 
 
-def motion(samples: int, seed: int, trajs: int = 4) -> Samples:
-    """Sum-of-sines motion cut into `trajs` trajectories of 10 segments each."""
+def motion(samples: int, seed: int, trajs: int = 4, scale: float = 1.0) -> Samples:
+    """Sum-of-sines motion (amplitudes x `scale`) cut into `trajs` trajectories of 10 segments each."""
     rng = np.random.default_rng(seed)
     t = np.arange(samples) * 0.008
     q = np.zeros((samples, 6))
@@ -49,7 +49,7 @@ def motion(samples: int, seed: int, trajs: int = 4) -> Samples:
     ddq = np.zeros_like(q)
     for k in range(1, 4):
         w = rng.uniform(0.3, 1.0, 6) * k
-        a = rng.uniform(0.1, 0.5, 6) / k
+        a = scale * rng.uniform(0.1, 0.5, 6) / k
         ph = rng.uniform(0, 6, 6)
         q += a * np.sin(w * t[:, None] + ph)
         dq += a * w * np.cos(w * t[:, None] + ph)

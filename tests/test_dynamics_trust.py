@@ -8,7 +8,6 @@ import dataclasses
 import json
 
 import numpy as np
-import pinocchio as pin
 import pytest
 
 from cell.dataset import Samples
@@ -21,6 +20,7 @@ from cell.dynamics.uncertainty import SPEED_EDGES, Coverage, CoverageConfig
 from cell.observer import KalmanObserver
 from drivers.interfaces import ArmState
 from tasks.lab import TrainOptions, fit_model
+from tests.test_dynamics_learned import motion, plant_like_torque
 
 # One thread: on a 2-core machine busy with another job, XGBoost's two threads spin against it (30 s vs 0.2 s).
 SMALL = XGBParams(n_estimators=60, max_depth=5, learning_rate=0.2, nthread=1, early_stopping_rounds=10)
@@ -172,40 +172,6 @@ def robot_module():
 
     cfg = load_config()
     return load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
-
-
-def motion(samples: int, seed: int, trajs: int = 4, scale: float = 1.0) -> Samples:
-    """Sum-of-sines motion cut into `trajs` trajectories of 10 segments each."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(samples) * DT
-    q = np.zeros((samples, 6))
-    dq = np.zeros_like(q)
-    ddq = np.zeros_like(q)
-    for k in range(1, 4):
-        w = rng.uniform(0.3, 1.0, 6) * k
-        a = scale * rng.uniform(0.1, 0.5, 6) / k
-        ph = rng.uniform(0, 6, 6)
-        q += a * np.sin(w * t[:, None] + ph)
-        dq += a * w * np.cos(w * t[:, None] + ph)
-        ddq -= a * w**2 * np.sin(w * t[:, None] + ph)
-    per = samples // trajs
-    starts = np.arange(trajs) * per
-    segment = np.arange(samples) // max(1, per // 10)
-    return Samples(q=q, dq=dq, ddq=ddq, tau=np.zeros_like(q), starts=starts, names=[], segment=segment)
-
-
-def plant_like_torque(robot, s: Samples) -> np.ndarray:
-    """Rigid body of a modified model + viscous/Coulomb + what P2 cannot express (ripple, Stribeck)."""
-    model = robot.model.copy()
-    for j in range(1, model.njoints):
-        inertia = model.inertias[j]
-        model.inertias[j] = pin.Inertia(inertia.mass * 1.1, inertia.lever + 0.02, inertia.inertia)
-    data = model.createData()
-    rb = np.array([pin.rnea(model, data, s.q[k], s.dq[k], s.ddq[k]) for k in range(len(s))])
-    sign = np.tanh(s.dq / 0.005)
-    ripple = 1.5 * np.sin(4 * s.q + 0.3) * sign
-    stribeck = 3.0 * np.exp(-((s.dq / 0.1) ** 2)) * sign
-    return rb + 4.0 * s.dq + 5.0 * sign + ripple + stribeck
 
 
 @pytest.fixture(scope="module")
