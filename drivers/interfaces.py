@@ -51,6 +51,11 @@ class ArmStatus:
         return not (self.error or self.estop or self.protective_stop)
 
 
+# How far beyond a joint's range a reported position may lie (encoder and servo overshoot at a
+# hard limit) before the reading is refused [rad].
+LIMIT_TOLERANCE_RAD = 0.05
+
+
 @dataclass(frozen=True)
 class ArmState:
     """One timestamped sample of the arm: joint positions, speeds and measured motor torques."""
@@ -221,6 +226,21 @@ class Arm(ABC):
                     reason = f"arm state field {name} is invalid: {value!r}"
                     self.fault(reason)
                     raise DriverError(reason)
+            # A position outside the joint's range is a wrong reading (or a wrong limit), never a
+            # state to command from: a target near it would be clipped toward the reading, not the range.
+            lim = self.limits
+            outside = (state.q < lim.lower - LIMIT_TOLERANCE_RAD) | (state.q > lim.upper + LIMIT_TOLERANCE_RAD)
+            if np.any(outside):
+                j = int(np.flatnonzero(outside)[0])
+                reason = (f"joint {j + 1} reported at {np.degrees(state.q[j]):.4g} deg, outside its limits "
+                          f"[{np.degrees(lim.lower[j]):.4g}, {np.degrees(lim.upper[j]):.4g}] deg")
+                self.fault(reason)
+                raise DriverError(reason)
+            # The controller in error, E-stop or protective stop: the driver refuses commands itself
+            # (the control loop's safety check stops too, but the boundary must not rely on it).
+            if not state.status.ok and self._lifecycle is Lifecycle.ARMED:
+                flags = [k for k in ("error", "estop", "protective_stop") if getattr(state.status, k)]
+                self.fault(f"controller reports {', '.join(flags)}")
             return state
 
     def send_target(self, q_target: np.ndarray) -> SentCommand:

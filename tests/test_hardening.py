@@ -192,7 +192,8 @@ def test_sigterm_during_a_run_stops_the_arm_writes_the_summary_and_exits_143(cap
 
 # ------------------------------------------------------------------------------------------- devices
 class _CountingArm:
-    """A driver double on the real lifecycle (drivers.interfaces.Arm) that counts stop commands."""
+    """A driver double on the real lifecycle (drivers.interfaces.Arm) that counts stops and writes;
+    `q` and `status` are what its controller reports."""
 
     @staticmethod
     def make():
@@ -205,12 +206,16 @@ class _CountingArm:
                 lim = JointLimits(lower=-np.ones(6), upper=np.ones(6), velocity=np.ones(6), effort=np.ones(6) * 10)
                 super().__init__(lim, 0.008)
                 self.stops = 0
+                self.writes = 0
+                self.q = np.zeros(6)
+                self.status = ArmStatus()
 
             def _connect(self) -> None: ...
             def _disconnect(self) -> None: ...
             def _read_state(self) -> ArmState:
-                return ArmState(t=0.0, q=np.zeros(6), dq=np.zeros(6), tau=np.zeros(6), status=ArmStatus())
-            def _write_target(self, q) -> None: ...
+                return ArmState(t=0.0, q=self.q.copy(), dq=np.zeros(6), tau=np.zeros(6), status=self.status)
+            def _write_target(self, q) -> None:
+                self.writes += 1
             def _stop(self) -> None:
                 self.stops += 1
 
@@ -264,3 +269,49 @@ def test_a_recording_that_cannot_be_written_is_a_recording_error(tmp_path, monke
     rec.append({"t": 0.0})
     with pytest.raises(RecordingError, match="No space left on device"):
         rec.append({"t": 0.1})
+
+
+@pytest.mark.parametrize("reading", [1.2, 3e38, -1.06])
+def test_a_position_reported_outside_the_joint_range_faults_and_refuses_arming(reading):
+    import numpy as np
+
+    from drivers.errors import DriverError, LifecycleError
+    from drivers.interfaces import Lifecycle
+
+    arm = _CountingArm.make()
+    with arm:
+        arm.arm()
+        arm.q[2] = reading
+        with pytest.raises(DriverError, match="joint 3 reported at .* outside its limits"):
+            arm.read_state()
+        assert arm.lifecycle is Lifecycle.FAULT and arm.stops >= 1
+        with pytest.raises(LifecycleError):
+            arm.send_target(np.zeros(6))
+        with pytest.raises(DriverError):
+            arm.arm()  # re-arming reads the state again: still refused
+        assert arm.writes == 0
+        arm.q[2] = 1.04  # within the overshoot tolerance of the 1 rad limit
+        arm.arm()
+        assert arm.lifecycle is Lifecycle.ARMED
+
+
+@pytest.mark.parametrize("flag", ["error", "estop", "protective_stop"])
+def test_the_driver_refuses_targets_itself_once_the_controller_reports_a_stop(flag):
+    import dataclasses
+
+    import numpy as np
+
+    from drivers.errors import LifecycleError
+    from drivers.interfaces import Lifecycle
+
+    arm = _CountingArm.make()
+    with arm:
+        arm.arm()
+        arm.send_target(np.zeros(6))
+        assert arm.writes == 1
+        arm.status = dataclasses.replace(arm.status, **{flag: True})
+        arm.read_state()  # the state itself is valid data: returned, but the arm is faulted
+        assert arm.lifecycle is Lifecycle.FAULT and arm.fault_reason == f"controller reports {flag}"
+        with pytest.raises(LifecycleError):
+            arm.send_target(np.zeros(6))
+        assert arm.writes == 1

@@ -419,7 +419,10 @@ def test_robot_watchdog_holds_plant_when_host_goes_quiet(arm: TM5ModbusArm, emul
     assert s.status.protective_stop and not s.status.ok
     assert arm.robot_side is not None and RobotFlags.WATCHDOG in arm.robot_side.flags
     accepted = len(plant.accepted_targets)
-    arm.send_target(q)  # the host wakes up: the tripped robot ignores targets until re-armed
+    # The host wakes up: its driver, having read the protective stop, refuses the target itself
+    # (and the tripped robot would ignore it until re-armed).
+    with pytest.raises(LifecycleError, match="controller reports protective_stop"):
+        arm.send_target(q)
     time.sleep(5 * DT)
     assert len(plant.accepted_targets) == accepted
     arm.arm()
