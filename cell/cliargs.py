@@ -13,7 +13,7 @@ def int_in(lo: int, hi: int | None = None) -> Callable[[str], int]:
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
         if value < lo or (hi is not None and value > hi):
             span = f">= {lo}" if hi is None else f"in {lo}..{hi}"
             raise argparse.ArgumentTypeError(f"{value} must be {span}")
@@ -27,9 +27,9 @@ def float_in(lo: float, hi: float, lo_open: bool = False, hi_open: bool = False)
         try:
             value = float(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
         if not math.isfinite(value):
-            raise argparse.ArgumentTypeError(f"{text} must be a finite number")
+            raise argparse.ArgumentTypeError(f"{text!r} must be a finite number")
         below = value <= lo if lo_open else value < lo
         above = value >= hi if hi_open else value > hi
         if below or above:

@@ -77,10 +77,41 @@ def load_manifest(path: Path) -> DatasetManifest:
     return load_dataclass(DatasetManifest, read_yaml(Path(path)), f"{path}:")
 
 
+# Paths a manifest may name: data files and folders, never a system tree (a manifest pointing at
+# /proc made a recursive listing run for minutes) and never more parts than a dataset has.
+SYSTEM_TREES = (Path("/proc"), Path("/sys"), Path("/dev"))
+MAX_PARTS = 10_000
+
+
 def manifest_files(path: Path, split: Split) -> list[Path]:
     man = load_manifest(path)
     base = Path(path).parent
-    return [p if p.is_absolute() else base / p for p in map(Path, getattr(man, split))]
+    out = []
+    for p in map(Path, getattr(man, split)):
+        full = p if p.is_absolute() else base / p
+        resolved = full.resolve()
+        if any(resolved == t or t in resolved.parents for t in SYSTEM_TREES):
+            raise DataError(f"{path}: {split} entry '{p}' is inside {resolved.anchor}{resolved.parts[1]}: "
+                            "not a dataset file")
+        if resolved.exists() and not (resolved.is_file() or resolved.is_dir()):
+            raise DataError(f"{path}: {split} entry '{p}' is not a regular file or folder")
+        out.append(full)
+    return out
+
+
+def parquet_parts(path: Path) -> list[Path]:
+    """A dataset entry's Parquet files: the file itself, or a folder's parts (at most MAX_PARTS)."""
+    path = Path(path)
+    if not path.is_dir():
+        return [path]
+    parts = []
+    for part in path.rglob("*.parquet"):
+        if part.name.startswith("."):
+            continue
+        parts.append(part)
+        if len(parts) > MAX_PARTS:
+            raise DataError(f"{path}: more than {MAX_PARTS} Parquet parts: not a dataset folder")
+    return sorted(parts)
 
 
 # ----------------------------------------------------------------------------------------- data
@@ -134,17 +165,38 @@ def _column(table: pa.Table, name: str, file: Path, allow_nan: bool = False) -> 
             f"{file}: column '{name}' has {int(bad.sum())} NaN/inf rows (first at row {first}); "
             "drop or repair those rows"
         )
+    limit = _magnitude_limit(name)
+    if limit is not None:
+        big = np.abs(values) > limit
+        if big.any():
+            first = int(np.flatnonzero(big)[0])
+            raise DataError(f"{file}: column '{name}' has {int(big.sum())} rows beyond +-{limit:g} (first at row "
+                            f"{first}: {values[first]:.6g}): not a physical value")
     return values
+
+
+# Largest plausible magnitudes per column family (SI): a value beyond is corrupt data, which would
+# otherwise overflow the derivative filters and the models.
+MAGNITUDE_LIMITS = {"t": 1e11, "q": 100.0, "dq": 100.0, "tau": 1e5}
+MIN_TIME_STEP_S = 1e-5  # no arm reports faster than 100 kHz; smaller steps are corrupt time stamps
+
+
+def _magnitude_limit(name: str) -> float | None:
+    prefix = name.rstrip("0123456789")
+    return MAGNITUDE_LIMITS.get(prefix)
 
 
 def read_table(path: Path) -> pa.Table:
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such file or folder")
+    if path.is_dir():
+        parquet_parts(path)  # bounded: refuses a tree of more parts than a dataset has
     try:
         return pq.read_table(path)
-    except (pa.ArrowInvalid, OSError) as exc:
-        raise DataError(f"{path}: not a readable Parquet file or folder ({str(exc).splitlines()[0]})") from None
+    except (pa.ArrowException, OSError, ValueError) as exc:  # a damaged file fails in many ways
+        first = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise DataError(f"{path}: not a readable Parquet file or folder ({first})") from None
 
 
 def _payload_columns(table: pa.Table, path: Path) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -239,6 +291,10 @@ def load_trajectories(path: Path, n_joints: int | None = None, max_gap_s: float 
             raise DataError(
                 f"{path}: column 't' is not strictly increasing at row {k} (t={t[k]:.6g} s after {t[k - 1]:.6g} s)"
             )
+        if np.any(dt < MIN_TIME_STEP_S):
+            k = int(np.flatnonzero(dt < MIN_TIME_STEP_S)[0]) + a + 1
+            raise DataError(f"{path}: column 't' steps by {dt[k - a - 1]:.3g} s at row {k}: below "
+                            f"{MIN_TIME_STEP_S:g} s, not a sample period")
         # A gap (a dropped chunk, concatenated runs) breaks the trajectory: derivatives must not span it.
         if max_gap_s is not None:
             gaps = np.flatnonzero(dt > max_gap_s) + 1
@@ -281,10 +337,7 @@ def files_sha256(paths: Iterable[Path]) -> str:
     """Content hash of dataset files (folders: every Parquet part inside, in name order)."""
     h = hashlib.sha256()
     for p in sorted(Path(x) for x in paths):
-        parts = sorted(p.rglob("*.parquet")) if p.is_dir() else [p]
-        for part in parts:
-            if part.name.startswith("."):
-                continue
+        for part in parquet_parts(p):
             h.update(part.name.encode())
             h.update(part.read_bytes())
     return h.hexdigest()

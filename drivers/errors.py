@@ -4,9 +4,18 @@ from __future__ import annotations
 
 
 class CellError(Exception):
-    """Base of every expected error: the CLI prints its one-line message and exits non-zero."""
+    """Base of every expected error: the CLI prints its one-line message and exits non-zero.
+
+    The message is one line by construction: control characters that came in with user input (a
+    key or value read from a file) are shown escaped, never as line breaks."""
 
     exit_code = 1
+
+    def __str__(self) -> str:
+        text = super().__str__()
+        if text.isprintable():
+            return text
+        return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 class ConfigError(CellError):

@@ -125,8 +125,8 @@ def test_a_home_outside_the_joint_limits_is_refused(tmp_path, capsys):
 # ------------------------------------------------------------------------------------------- CLI args
 @pytest.mark.parametrize("argv, words", [
     (["run", "wipe", "--seed", "-1"], "--seed: -1 must be in 0.."),
-    (["bench", "peg-in-hole", "--max-offset-mm", "nan"], "--max-offset-mm: nan must be a finite number"),
-    (["bench", "peg-in-hole", "--max-tilt-deg", "inf"], "--max-tilt-deg: inf must be a finite number"),
+    (["bench", "peg-in-hole", "--max-offset-mm", "nan"], "--max-offset-mm: 'nan' must be a finite number"),
+    (["bench", "peg-in-hole", "--max-tilt-deg", "inf"], "--max-tilt-deg: 'inf' must be a finite number"),
     (["bench", "peg-in-hole", "--peg-diameter-mm", "-5"], "--peg-diameter-mm: -5 must lie in"),
     (["bench", "drivers", "--n", "0"], "--n: 0 must be >= 1"),
     (["evaluate", "--data", "d.yaml", "--out", "o", "--curve", "a,b"], "--curve: 'a' is not an integer"),

@@ -6,6 +6,7 @@ import dataclasses
 import json
 import logging
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -101,6 +102,9 @@ def load_model(path: Path, robot: RobotModel) -> AnyModel:
     params = load_dataclass(XGBParams, doc.get("xgboost", {}), f"{doc_path}: xgboost")
     boosters: dict[int, xgb.Booster] = {}
     for key, name in doc["boosters"].items():
+        # Names are the ones save_model writes: a path elsewhere (../, /) is not part of this artefact.
+        if not isinstance(name, str) or not re.fullmatch(r"booster_j\d{1,2}\.ubj", name) or not str(key).isdigit():
+            raise DataError(f"{doc_path}: booster entry {key!r}: {name!r} is not a booster file of this artefact")
         file = doc_path.parent / name
         if not file.exists():
             raise DataError(f"{doc_path}: booster file {file} for joint {key} is missing")
