@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import select
 import signal
 import subprocess
@@ -177,8 +178,50 @@ def serve_cell(cfg: CellConfig, seed: int | None, scene: str) -> int:
     return 0
 
 
+# Fault commands: name -> (least, most arguments); every argument a finite number >= 0 (seconds,
+# milliseconds or a probability), checked whole: a malformed one is refused, never skipped (which would
+# change the command's meaning, e.g. `delay 20 -1` read as `delay 20`: for ever).
+ARM_COMMANDS = {"drop_link": (1, 1), "freeze": (0, 1), "unfreeze": (0, 0), "delay": (1, 2), "exceptions": (0, 1),
+                "clear": (0, 0)}
+SENSOR_COMMANDS = {"garbage": (1, 1), "split": (1, 1), "drop": (1, 1), "clear": (0, 0)}
+
+
+def _numbers(words: list[str], bounds: tuple[int, int], what: str, probability: bool = False) -> list[float]:
+    least, most = bounds
+    if not least <= len(words) <= most:
+        span = str(least) if least == most else f"{least} to {most}"
+        raise ValueError(f"{what} takes {span} argument(s), got {len(words)}")
+    out = []
+    for w in words:
+        try:
+            v = float(w)
+        except ValueError:
+            raise ValueError(f"{what}: {w!r} is not a number") from None
+        if not math.isfinite(v) or v < 0 or (probability and v > 1):
+            raise ValueError(f"{what}: {w} must be a finite number >= 0{' and <= 1' if probability else ''}")
+        out.append(v)
+    return out
+
+
 def _apply(words: list[str], arm_emu: Any, sensor_faults: Any) -> None:
-    head, args = words[0], [float(w) for w in words[1:] if w.replace(".", "", 1).isdigit()]
+    head = words[0]
+    if head == "sensor":
+        if len(words) < 2 or words[1] not in SENSOR_COMMANDS:
+            raise ValueError(f"sensor fault must be one of {', '.join(SENSOR_COMMANDS)}")
+        kind = words[1]
+        p = _numbers(words[2:], SENSOR_COMMANDS[kind], f"sensor {kind}", probability=True)
+        if kind == "garbage":
+            sensor_faults.garbage_prob = p[0]
+        elif kind == "split":
+            sensor_faults.split_prob = p[0]
+        elif kind == "drop":
+            sensor_faults.drop_reply_prob = p[0]
+        else:
+            sensor_faults.garbage_prob = sensor_faults.split_prob = sensor_faults.drop_reply_prob = 0.0
+        return
+    if head not in ARM_COMMANDS:
+        raise ValueError(f"unknown command '{head}' (known: {', '.join([*ARM_COMMANDS, 'sensor', 'quit'])})")
+    args = _numbers(words[1:], ARM_COMMANDS[head], head)
     if head == "drop_link":
         arm_emu.drop_link(args[0])
     elif head == "freeze":
@@ -189,20 +232,5 @@ def _apply(words: list[str], arm_emu: Any, sensor_faults: Any) -> None:
         arm_emu.delay_replies(args[0], args[1] if len(args) > 1 else None)
     elif head == "exceptions":
         arm_emu.inject_exceptions(args[0] if args else None)
-    elif head == "clear":
-        arm_emu.clear_faults()
-    elif head == "sensor":
-        kind = words[1]
-        p = float(words[2]) if len(words) > 2 else 0.0
-        if kind == "garbage":
-            sensor_faults.garbage_prob = p
-        elif kind == "split":
-            sensor_faults.split_prob = p
-        elif kind == "drop":
-            sensor_faults.drop_reply_prob = p
-        elif kind == "clear":
-            sensor_faults.garbage_prob = sensor_faults.split_prob = sensor_faults.drop_reply_prob = 0.0
-        else:
-            raise ValueError(f"unknown sensor fault '{kind}'")
     else:
-        raise ValueError(f"unknown command '{head}'")
+        arm_emu.clear_faults()

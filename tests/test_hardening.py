@@ -315,3 +315,52 @@ def test_the_driver_refuses_targets_itself_once_the_controller_reports_a_stop(fl
         with pytest.raises(LifecycleError):
             arm.send_target(np.zeros(6))
         assert arm.writes == 1
+
+
+# ------------------------------------------------------------------------------------------- emulator
+class _Recorder:
+    """Stands in for the TM5 emulator: records the fault calls it gets."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple] = []
+
+    def __getattr__(self, name):
+        return lambda *args: self.calls.append((name, *args))
+
+
+@pytest.mark.parametrize("line, call", [
+    ("drop_link 1.5", ("drop_link", 1.5)),
+    ("delay 20", ("delay_replies", 20.0, None)),
+    ("delay 20 1.0", ("delay_replies", 20.0, 1.0)),
+    ("freeze", ("freeze", None)),
+    ("clear", ("clear_faults",)),
+])
+def test_emulator_fault_commands_do_what_they_say(line, call):
+    from sim.emulated import _apply
+    from sim.wacoh_emulator import FaultConfig
+
+    arm = _Recorder()
+    _apply(line.split(), arm, FaultConfig())
+    assert arm.calls == [call]
+
+
+@pytest.mark.parametrize("line, words", [
+    ("delay 20 -1.0", "must be a finite number >= 0"),
+    ("delay 20 1.0 3", "takes 1 to 2 argument(s), got 3"),
+    ("drop_link abc", "'abc' is not a number"),
+    ("drop_link", "takes 1 argument(s), got 0"),
+    ("freeze nan", "must be a finite number"),
+    ("sensor garbage 1.5", "<= 1"),
+    ("sensor garbage", "takes 1 argument(s)"),
+    ("sensor melt 0.1", "sensor fault must be one of"),
+    ("explode 1", "unknown command 'explode'"),
+])
+def test_malformed_emulator_fault_commands_are_refused_not_reinterpreted(line, words):
+    from sim.emulated import _apply
+    from sim.wacoh_emulator import FaultConfig
+
+    arm, faults = _Recorder(), FaultConfig()
+    with pytest.raises(ValueError, match=".*") as exc:
+        _apply(line.split(), arm, faults)
+    assert words in str(exc.value)
+    assert arm.calls == [] and faults.garbage_prob == 0.0
