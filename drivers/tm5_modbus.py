@@ -648,9 +648,12 @@ class TM5ModbusArm(Arm):
             raise ProtocolError(f"TM5 {self.endpoint}: cannot encode joint targets: {exc}") from None
         regs[lay.slice_in("host_seq", start)] = int32_to_regs(seq)
         regs[lay.slice_in("command", start)] = [int(command)]
+        # The number is used up once sent, reply or not: a write whose reply was lost may have reached the
+        # robot-side program, which ignores a number it already acted upon (a re-arm reusing it would
+        # never clear the latched stop).
+        self._host_seq = seq
         self._call("write holding", start, lambda c, dev: c.write_registers(start, regs, device_id=dev),
                    may_reconnect=may_reconnect)
-        self._host_seq = seq
         return seq
 
     def _read_registers(self, kind: str, address: int, count: int) -> list[int]:

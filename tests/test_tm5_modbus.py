@@ -498,3 +498,24 @@ def test_bench_reports_cycle_times() -> None:
     result = bench_modbus(200)
     assert result["n"] == 200
     assert 0 < result["modbus_cycle_median_ms"] <= result["modbus_cycle_p99_ms"]
+
+
+@pytest.mark.timeout(20)
+def test_rearming_after_a_lost_write_reply_uses_a_new_host_sequence(arm: TM5ModbusArm, emulator: TM5Emulator,
+                                                                    plant: FakePlant) -> None:
+    # A write whose reply is lost may still have reached the robot-side program, which then acted on its
+    # host sequence: that number is used up.  Re-arming must send the next one (the robot ignores a
+    # repeated number, so its latched stop would never clear and arming would fail every time).
+    arm.arm()
+    q = arm.read_state().q
+    arm.send_target(q)
+    emulator.delay_replies(200, seconds=0.05)
+    with pytest.raises(DriverError):
+        arm.send_target(q + 0.001)
+    time.sleep(0.06)
+    emulator.clear_faults()
+    arm.arm()  # first attempt
+    assert read_until_ok(arm).status.ok
+    accepted = len(plant.accepted_targets)
+    arm.send_target(q)
+    wait_for(lambda: len(plant.accepted_targets) > accepted, what="targets after re-arm")
