@@ -365,6 +365,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if args.plant:
             cfg.plant = str(Path(args.plant).resolve())
         out = characterise_plant(cfg, seed=args.seed)
+    elif args.what == "faults":
+        from sim.bench_faults import bench_faults
+
+        cfg = load_config(args.config)
+        out = bench_faults(cfg, robot_for(cfg, "wipe"))
+        _emit(out, args.json)
+        return 0 if out["failures"] == 0 else 1
     else:
         raise ConfigError(f"bench {args.what}: unknown benchmark")
     _emit(out, args.json)
@@ -656,7 +663,7 @@ def build_parser() -> argparse.ArgumentParser:
     em.set_defaults(func=cmd_emulate)
 
     b = sub.add_parser("bench", help="benchmarks that print the project's measured figures")
-    b.add_argument("what", choices=("sim", "plant", "drivers", "model", "peg-in-hole"))
+    b.add_argument("what", choices=("sim", "plant", "drivers", "model", "peg-in-hole", "faults"))
     b.add_argument("--trials", type=COUNT, default=50, help="randomised insertions (bench peg-in-hole)")
     b.add_argument("--max-offset-mm", type=float_in(0, 20), default=2.0,
                    help="hole offset drawn in +-this on x and y (bench peg-in-hole)")

@@ -364,3 +364,16 @@ def test_malformed_emulator_fault_commands_are_refused_not_reinterpreted(line, w
         _apply(line.split(), arm, faults)
     assert words in str(exc.value)
     assert arm.calls == [] and faults.garbage_prob == 0.0
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_bench_faults_detects_every_fault_in_its_budget(capsys):
+    code = main(["-q", "bench", "faults", "--json"])
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert set(out["faults"]) == {"link_loss", "stale_robot_data", "late_replies", "modbus_exceptions",
+                                  "sensor_silent", "sensor_garbage"}
+    for name, row in out["faults"].items():
+        assert row["detected"] and row["within_budget"] and row["arm_stopped"] and row["recording_ok"], (name, row)
+    assert out["link_loss_detection_periods"] <= 2
+    assert out["failures"] == 0 and code == 0
