@@ -515,6 +515,9 @@ class TM5ModbusArm(Arm):
             rs = self._read_robot_block()
             first_counter = rs.counter if first_counter is None else first_counter
             if rs.host_seq_echo == seq:
+                # Armed on a working link: a stop that failed before this is moot, so a fault's first stop
+                # again never waits on the link (it would double the time a lost link takes to report).
+                self._stop_failed = False
                 return
             if time.monotonic() >= deadline:
                 break

@@ -519,3 +519,23 @@ def test_rearming_after_a_lost_write_reply_uses_a_new_host_sequence(arm: TM5Modb
     accepted = len(plant.accepted_targets)
     arm.send_target(q)
     wait_for(lambda: len(plant.accepted_targets) > accepted, what="targets after re-arm")
+
+
+@pytest.mark.timeout(30)
+def test_a_lost_link_is_reported_within_one_timeout_every_time(emulator: TM5Emulator) -> None:
+    # A fault's own stop never waits on the link; a stop that failed before a successful re-arm must not
+    # make the next fault's stop reconnect and wait a second timeout (21 ms for a 10 ms timeout).
+    arm = make_arm(emulator, timeout_s=0.01)
+    with arm:
+        arm.arm()
+        took = []
+        for _ in range(6):
+            emulator.delay_replies(200, seconds=0.05)
+            t0 = time.perf_counter()
+            with pytest.raises(DriverError):
+                arm.read_state()
+            took.append(time.perf_counter() - t0)
+            time.sleep(0.06)
+            emulator.clear_faults()
+            arm.arm()
+        assert float(np.median(took)) < 0.01 + 0.005, took
