@@ -9,6 +9,7 @@ import select
 import termios
 import threading
 import time
+from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any, Literal
@@ -58,7 +59,16 @@ _WRITE_TIMEOUT_FLOOR_S = 0.2
 _DRAIN_S = 0.02
 # `O` must be sent three times, about 1 ms apart.
 _ZERO_REPEATS = 3
-_P_ATTEMPTS = 3  # a garbled `p` reply is worth asking again: the sensitivities set every reading's scale
+# The sensitivities set every reading's scale, and the reply has no checksum: a flipped bit in a digit
+# (32.800 -> 32.801) is still a plausible reply.  So `p` is asked until two replies are byte-identical,
+# well-formed and plausible (a garbled reply is asked again), at most this many times.
+_P_ATTEMPTS = 6
+# Poll mode matches each reply's record number (a digit 0-9 the sensor increments per record) to its
+# request.  A request whose reply did not come in time stays "unsettled" (its reply may still arrive,
+# and must not pass for a later request's) until a later record settles it or this long has passed.
+_LATE_REPLY_S = 0.1
+# At connect, one `R` with this much patience learns the sensor's record number.
+_SYNC_WAIT_S = 0.1
 _ZERO_GAP_S = 0.001
 _ZERO_SETTLE_S = 0.01
 
@@ -159,25 +169,50 @@ def encode_record(record_no: int, raw_counts: Sequence[int] | np.ndarray) -> byt
     return b"%d%04X%04X%04X%04X%04X%04X\r\n" % (int(record_no), *counts)
 
 
-_DECIMAL = re.compile(r"\s*\d+(?:\.\d+)?\s*")
+# ASCII only, on bytes: a str pattern's \s and \d also match Unicode whitespace and digits, and
+# 0x1C-0x1F (one flipped bit turns CR into 0x1D) are whitespace to `re` but not to float().
+_DECIMAL = re.compile(rb" *[0-9]+(?:\.[0-9]+)? *")
+_AXIS_NAMES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+_AXIS_UNITS = ("LSB/N",) * 3 + ("LSB/(N·m)",) * 3
+# Default relative band around the nominal sensitivities within which a `p` reply is believed.
+SENSITIVITY_TOLERANCE = 0.10
 
 
-def parse_sensitivities(line: bytes) -> Sensitivities:
-    """Parse the reply to `p`: six comma-separated decimals (Fx,Fy,Fz in LSB/N then Mx,My,Mz in LSB/N·m)."""
-    try:
-        text = bytes(line).decode("ascii").rstrip("\r\n")
-    except UnicodeDecodeError:
-        raise ProtocolError(f"WACOH sensitivities reply {bytes(line)[:80]!r}: not ASCII") from None
-    parts = text.split(",")
-    # A strict decimal pattern (not float()) so 'nan', 'inf', '1e3' and '-5' are all refused.
+def parse_sensitivities(
+    line: bytes, nominal: Sensitivities | None = None, tolerance: float = SENSITIVITY_TOLERANCE
+) -> Sensitivities:
+    """Parse the reply to `p`: six comma-separated decimals (Fx,Fy,Fz in LSB/N then Mx,My,Mz in LSB/N·m) + CR LF.
+
+    Every malformed reply raises ProtocolError (one line).  With `nominal`, each value must also lie
+    within `tolerance` (relative) of its nominal value (`check_sensitivities`).
+    """
+    raw = bytes(line)
+    shown = raw[:80]
+    if not raw.endswith(CRLF) or b"\r" in raw[:-2] or b"\n" in raw[:-2]:
+        raise ProtocolError(f"WACOH sensitivities reply {shown!r}: not one line ending in CR LF")
+    parts = raw[:-2].split(b",")
+    # A strict decimal pattern (not float()) so 'nan', 'inf', '1e3', '-5' and control bytes are all refused.
     if len(parts) != N_CHANNELS or not all(_DECIMAL.fullmatch(p) for p in parts):
-        raise ProtocolError(
-            f"WACOH sensitivities reply {bytes(line)[:80]!r}: expected six comma-separated decimals"
-        )
-    values = [float(p) for p in parts]
-    if not all(math.isfinite(v) and v > 0 for v in values):
-        raise ProtocolError(f"WACOH sensitivities reply {bytes(line)[:80]!r}: values must be positive")
-    return Sensitivities.from_values(values)
+        raise ProtocolError(f"WACOH sensitivities reply {shown!r}: expected six comma-separated decimals")
+    try:
+        values = [float(p) for p in parts]
+        sens = Sensitivities.from_values(values)
+    except ValueError:  # zero, or anything float() still refuses: the reply is wrong, not the program
+        raise ProtocolError(f"WACOH sensitivities reply {shown!r}: values must be positive decimals") from None
+    if nominal is not None:
+        check_sensitivities(sens, nominal, tolerance)
+    return sens
+
+
+def check_sensitivities(sens: Sensitivities, nominal: Sensitivities, tolerance: float) -> Sensitivities:
+    """ProtocolError naming the first axis whose value is not within `tolerance` (relative) of `nominal`."""
+    for name, unit, value, ref in zip(_AXIS_NAMES, _AXIS_UNITS, sens.values, nominal.values, strict=True):
+        if not abs(value - ref) <= tolerance * ref:
+            raise ProtocolError(
+                f"WACOH sensitivities reply: {name} = {value:g} {unit} is not within {tolerance:.0%} of "
+                f"the nominal {ref:g}"
+            )
+    return sens
 
 
 class RecordReader:
@@ -298,6 +333,12 @@ def _sensitivities(value: Any, key: str) -> Sensitivities:
     return Sensitivities.from_values(value)
 
 
+def _fraction(value: Any, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < 1:
+        raise ConfigError(f"{key} must be a number between 0 and 1 (exclusive), got {_show(value)}")
+    return float(value)
+
+
 def _filter(value: Any, key: str) -> int | None:
     return None if value is None else int(_choice(value, key, FILTER_SETTINGS))
 
@@ -316,6 +357,12 @@ class WacohConfig:
     filter: int | None = None  # sensor moving average over 1/2/4/8 samples; None leaves it as it is
     mode: ReadMode = "poll"  # "poll": one `R` per read; "stream": `S`, keep the latest record
     max_consecutive_failures: int = 10  # reads in a row with no valid record before LinkLostError
+
+    # A `p` reply is believed only if every value lies within `sensitivity_tolerance` (relative) of these
+    # nominal values of the sensor class (200 N / 4 N·m: ~32.8 LSB/N, ~1638 LSB/(N·m)); else it is
+    # asked again, and the configured `sensitivities` are used if no plausible reply comes.
+    nominal_sensitivities: Sensitivities = field(default_factory=Sensitivities)
+    sensitivity_tolerance: float = SENSITIVITY_TOLERANCE
 
     def validate(self, where: str = "WacohConfig") -> None:
         """ConfigError naming the first bad field."""
@@ -350,6 +397,8 @@ _CHECKS: dict[str, Any] = {
     "filter": _filter,
     "mode": lambda v, k: _choice(v, k, ("poll", "stream")),
     "max_consecutive_failures": _positive_int,
+    "nominal_sensitivities": _sensitivities,
+    "sensitivity_tolerance": _fraction,
 }
 
 
@@ -387,8 +436,14 @@ class WacohSensor(ForceSensor):
         self.records_rejected = 0
         self.records_saturated = 0
         self.timeouts = 0
+        self.records_stale = 0  # poll mode: records that answered an earlier request (discarded)
         self.consecutive_failures = 0
         self._warned_saturation = False
+        self._fd: int | None = None
+        # Poll mode: the record number the sensor gives its next record (None: not known), and the
+        # (record number, send time) of earlier requests whose replies may still arrive.
+        self._next_no: int | None = None
+        self._unsettled: deque[tuple[int | None, float]] = deque()
         # Stream mode.
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
@@ -415,6 +470,7 @@ class WacohSensor(ForceSensor):
                 "records_rejected": self.records_rejected,
                 "records_saturated": self.records_saturated,
                 "timeouts": self.timeouts,
+                "records_stale": self.records_stale,
                 "consecutive_failures": self.consecutive_failures,
             }
 
@@ -437,6 +493,11 @@ class WacohSensor(ForceSensor):
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LinkLostError(f"WACOH sensor: cannot open {cfg.port}: {exc}") from None
         try:
+            self._fd = self._ser.fileno()
+        except (AttributeError, NotImplementedError, serial.SerialException):
+            self._fd = None  # a URL port without a file descriptor
+        self._next_no, self._unsettled = None, deque()
+        try:
             self._stop_stream_and_drain()  # a previous session may have left streaming on
             self._sens, self.sensitivities_source = self._request_sensitivities()
             self._scale = self._sens.as_array()
@@ -446,6 +507,9 @@ class WacohSensor(ForceSensor):
             self.consecutive_failures = 0
             if cfg.mode == "stream":
                 self._start_stream()
+            elif self._poll_once(wait_s=max(cfg.timeout_s, _SYNC_WAIT_S), count=False) is None:
+                log.warning("WACOH sensor on %s: no record at connect; reads wait until no earlier "
+                            "request can still be answered", cfg.port)
         except BaseException:
             self._stop_stream_thread()
             self._close_port()
@@ -500,10 +564,21 @@ class WacohSensor(ForceSensor):
         except _LINK_ERRORS as exc:
             raise self._link_lost("clearing input", exc) from None
 
-    def _read_chunk(self, size: int) -> bytes:
-        """Up to `size` bytes, returning early once they are all there; b'' after one read slice."""
+    def _read_chunk(self, size: int, deadline: float) -> bytes:
+        """Up to `size` bytes of what has arrived, waiting for the first one until `deadline` at most
+        (b'' then).  The wait is the time left, not pyserial's per-read timeout: a read loop that
+        restarted that timeout overshot the deadline by up to a whole timeout (5 ms -> 10.3 ms)."""
+        port = self._port()
+        left = max(0.0, deadline - time.monotonic())
         try:
-            return bytes(self._port().read(size))
+            if self._fd is None:
+                port.timeout = left  # URL ports: no descriptor to wait on
+                return bytes(port.read(size))
+            readable, _, _ = select.select([self._fd], [], [], left)
+            if not readable:
+                return b""
+            # At least 1 byte after select said readable: a vanished device reads as an error then.
+            return bytes(port.read(max(1, min(size, port.in_waiting))))
         except _LINK_ERRORS as exc:
             raise self._link_lost("read", exc) from None
 
@@ -519,30 +594,46 @@ class WacohSensor(ForceSensor):
     def _read_line(self, deadline: float) -> bytes | None:
         """Bytes up to and including the first LF, or None at the deadline."""
         buf = bytearray()
-        while time.monotonic() < deadline:
-            buf += self._read_chunk(1)
-            if buf.endswith(b"\n"):
-                return bytes(buf)
+        while True:
+            chunk = self._read_chunk(MAX_LINE, deadline)
+            if not chunk:
+                if time.monotonic() >= deadline:
+                    return None
+                continue
+            lf = chunk.find(b"\n")
+            if lf >= 0:
+                return bytes(buf + chunk[: lf + 1])  # the rest is discarded with the next request
+            buf += chunk
             if len(buf) > MAX_LINE:
                 return bytes(buf)  # not a reply we know; let the parser reject it
-        return None
 
     def _request_sensitivities(self) -> tuple[Sensitivities, Literal["sensor", "config"]]:
-        """Ask `p`; a garbled reply is asked again, no reply at all (some models) falls back at once."""
-        port, fallback = self.config.port, self.config.sensitivities
+        """Ask `p` until two replies agree byte for byte and are well-formed and plausible (within the
+        configured band of the nominal values); a garbled or implausible reply is asked again, no
+        reply at all to the first request (some models never answer) falls back at once."""
+        cfg = self.config
+        port, fallback = cfg.port, cfg.sensitivities
         problem = ""
-        for _ in range(_P_ATTEMPTS):
+        believed: set[bytes] = set()
+        for attempt in range(_P_ATTEMPTS):
             self._discard_input()
             self._write(CMD_SENSITIVITIES, "sensitivities request")
             line = self._read_line(self._reply_deadline(64))
             if line is None:
-                problem = f"no reply to 'p' within {self.config.timeout_s:.3g} s"
-                break
+                problem = f"no reply to 'p' within {cfg.timeout_s:.3g} s"
+                if attempt == 0:
+                    break
+                continue
             try:
-                return parse_sensitivities(line), "sensor"
+                sens = parse_sensitivities(line, cfg.nominal_sensitivities, cfg.sensitivity_tolerance)
             except ProtocolError as exc:
                 problem = str(exc)
                 log.debug("WACOH sensor on %s: %s; asking again", port, exc)
+                continue
+            if line in believed:
+                return sens, "sensor"
+            believed.add(line)
+            problem = "no two replies to 'p' agreed"
         log.warning("WACOH sensor on %s: %s; using configured sensitivities %s", port, problem, fallback.values)
         return fallback, "config"
 
@@ -569,31 +660,83 @@ class WacohSensor(ForceSensor):
                 f"({self.timeouts} timeouts, {self.records_rejected} rejected records so far)"
             )
 
-    def _poll_once(self) -> _Sample | None:
-        """Send one `R` and read until its record arrives; None on timeout or a corrupt reply."""
+    def _poll_once(self, wait_s: float | None = None, count: bool = True) -> _Sample | None:
+        """Send one `R` and read until *its* record arrives; None on timeout or a corrupt reply.
+
+        A record is this request's only if its record number is the one the sensor gives its next
+        record: a reply to an earlier request that arrived late (after its own read gave up) carries an
+        earlier number and is discarded, never returned as new.  `wait_s` overrides the timeout
+        (connect's first read, which learns the numbering); `count=False` leaves the counters alone.
+        """
         # Clear leftovers first: a late or partial earlier reply must not pass for this one (pitfall 4).
         self._discard_input()
+        self._expire_unsettled()
+        if self._next_no is None and self._unsettled:
+            # The numbering is not known yet and an earlier request may still be answered: no reply
+            # could be told from that one.  Send nothing until it cannot come any more.
+            self._wait_until(self._reply_deadline(RECORD_LEN))
+            self.timeouts += count
+            return None
+        expected = self._next_no
         self._write(CMD_RECORD, "record request")
-        deadline = self._reply_deadline(RECORD_LEN)
+        sent = time.monotonic()
+        if expected is not None:
+            self._next_no = (expected + 1) % 10
+        deadline = sent + (self.config.timeout_s if wait_s is None else wait_s)
+        deadline += RECORD_LEN * _BITS_PER_BYTE / self.config.baudrate
         framer = self._framer
         rejected0, long0 = framer.rejected, framer.long_rejected
         try:
-            while time.monotonic() < deadline:
-                # Ask for exactly what completes the record: pyserial returns as soon as it is there.
-                chunk = self._read_chunk(max(1, RECORD_LEN - framer.pending))
+            while True:
+                # Ask for exactly what completes the record: the read returns as soon as it is there.
+                chunk = self._read_chunk(max(1, RECORD_LEN - framer.pending), deadline)
                 if not chunk:
+                    if time.monotonic() >= deadline:
+                        break
                     continue
-                frames = framer.feed(chunk)
-                if frames:
-                    _, counts = decode_counts(frames[0])
-                    self.records_ok += 1
-                    return _Sample(seq=self.records_ok, t=time.monotonic(), counts=counts)
-                if framer.long_rejected > long0:
-                    return None  # the reply came but was corrupt; nothing more is coming
-            self.timeouts += 1
+                for frame in framer.feed(chunk):
+                    record_no, counts = decode_counts(frame)
+                    if self._is_this_reply(record_no, expected):
+                        self._unsettled.clear()  # replies come in order: every earlier one is done
+                        if expected is None:
+                            self._next_no = (record_no + 1) % 10
+                        self.records_ok += count
+                        return _Sample(seq=self.records_ok, t=time.monotonic(), counts=counts)
+                    self.records_stale += count
+                if framer.long_rejected > long0 and wait_s is None:
+                    # The reply came but was corrupt (or it was a late reply of another command and
+                    # this one's is still to come: this request stays unsettled).
+                    break
+            if framer.long_rejected == long0:
+                self.timeouts += count
+            self._unsettled.append((expected, sent))
             return None
         finally:
-            self.records_rejected += framer.rejected - rejected0
+            self.records_rejected += (framer.rejected - rejected0) * count
+
+    def _is_this_reply(self, record_no: int, expected: int | None) -> bool:
+        """Whether a record numbered `record_no` answers the request just sent (expecting `expected`).
+
+        A record that answers an unsettled earlier request settles it and every request before it.
+        """
+        if expected is None:
+            return True  # nothing unsettled (see _poll_once): whatever comes answers this request
+        earlier = [no for no, _ in self._unsettled]
+        if record_no in earlier:
+            # An earlier request's reply (or, if `expected` too, ambiguous after a wrap: refused).
+            for _ in range(earlier.index(record_no) + 1):  # the oldest it may answer: settle the fewest
+                self._unsettled.popleft()
+            return False
+        return record_no == expected
+
+    def _expire_unsettled(self) -> None:
+        limit = time.monotonic() - _LATE_REPLY_S
+        while self._unsettled and self._unsettled[0][1] < limit:
+            self._unsettled.popleft()
+
+    def _wait_until(self, deadline: float) -> None:
+        while time.monotonic() < deadline:
+            self._read_chunk(MAX_LINE, deadline)  # whatever arrives now is an earlier request's: discarded
 
     def _to_wrench(self, sample: _Sample) -> Wrench:
         values = (sample.counts - self._zero) / self._scale

@@ -48,14 +48,16 @@ class FaultConfig:
     drop_crlf_prob: float = 0.0  # send a data record without its CR LF
     drop_reply_prob: float = 0.0  # do not send a reply (or streamed record) at all
     ignore_p: bool = False  # never answer `p` (some models do not)
+    reply_delay_s: float = 0.0  # send a reply this late (what the line and the adapter add) ...
+    reply_delay_prob: float = 1.0  # ... with this probability; replies stay in order (a later one waits)
 
     def __post_init__(self) -> None:
-        for name in ("split_prob", "garbage_prob", "drop_crlf_prob", "drop_reply_prob"):
+        for name in ("split_prob", "garbage_prob", "drop_crlf_prob", "drop_reply_prob", "reply_delay_prob"):
             p = getattr(self, name)
             if not 0.0 <= p <= 1.0:
                 raise ValueError(f"FaultConfig.{name} must be in [0, 1], got {p}")
-        if self.split_max_delay_s < 0 or self.garbage_max_len < 1:
-            raise ValueError("FaultConfig: split_max_delay_s must be >= 0 and garbage_max_len >= 1")
+        if self.split_max_delay_s < 0 or self.garbage_max_len < 1 or self.reply_delay_s < 0:
+            raise ValueError("FaultConfig: split_max_delay_s and reply_delay_s must be >= 0, garbage_max_len >= 1")
 
 
 class WacohEmulator:
@@ -100,12 +102,14 @@ class WacohEmulator:
         self._zero_count = 0
         self._last_zero_t = -math.inf
         self._pending_digit: int | None = None
+        self._delayed: deque[tuple[float, bytes]] = deque()  # (due time, bytes) of delayed replies, in order
         # Statistics for tests.
         self.commands: dict[str, int] = {}
         self.records_sent = 0
         self.replies_dropped = 0
         self.zero_events = 0
         self.bytes_overflowed = 0
+        self.replies_delayed = 0
         # Plumbing.
         self._master: int | None = None
         self._slave: int | None = None
@@ -169,8 +173,12 @@ class WacohEmulator:
         master, wake = self._master, self._wake_r
         next_record = time.monotonic()
         while not self._stop.is_set():
-            timeout = max(0.0, next_record - time.monotonic()) if self.streaming else None
+            wake_at = [next_record] if self.streaming else []
+            if self._delayed:
+                wake_at.append(self._delayed[0][0])
+            timeout = max(0.0, min(wake_at) - time.monotonic()) if wake_at else None
             ready, _, _ = select.select([master, wake], [], [], timeout)
+            self._flush_delayed()
             if wake in ready:
                 return
             if master in ready:
@@ -299,6 +307,24 @@ class WacohEmulator:
             self._write(payload)
 
     def _write(self, data: bytes) -> None:
+        f = self.faults
+        late = f.reply_delay_s > 0 and self._fault_rng.random() < f.reply_delay_prob
+        if late or self._delayed:
+            # Due after the delay if late, and never before a reply still waiting (a line keeps order).
+            due = time.monotonic() + (f.reply_delay_s if late else 0.0)
+            if self._delayed:
+                due = max(due, self._delayed[-1][0])
+            self._delayed.append((due, data))
+            self.replies_delayed += late
+            return
+        self._write_now(data)
+
+    def _flush_delayed(self) -> None:
+        now = time.monotonic()
+        while self._delayed and self._delayed[0][0] <= now:
+            self._write_now(self._delayed.popleft()[1])
+
+    def _write_now(self, data: bytes) -> None:
         assert self._master is not None
         try:
             written = os.write(self._master, data)

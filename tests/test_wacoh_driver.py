@@ -12,11 +12,14 @@ from typing import Any
 import numpy as np
 import pytest
 import serial
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from drivers.errors import ConfigError, LinkLostError
+from drivers.errors import ConfigError, LinkLostError, ProtocolError
 from drivers.wacoh import RAW_ZERO, Sensitivities, WacohConfig, WacohSensor, decode_counts
 from sim.bench import bench_serial
 from sim.wacoh_emulator import REAL_UNIT_SENSITIVITIES, FaultConfig, WacohEmulator
+from tests.test_wacoh_codec import REAL_LINE, corruptions
 
 pytestmark = pytest.mark.timeout(25)
 
@@ -128,6 +131,8 @@ def test_config_accepts_every_field() -> None:
         ({"sensitivities": [32.8] * 5}, "devices.sensor.sensitivities must be a list of 6 positive numbers"),
         ({"sensitivities": [32.8] * 5 + [0.0]}, "devices.sensor.sensitivities must be a list of 6 positive"),
         ({"port": ""}, "devices.sensor.port must be a non-empty string"),
+        ({"sensitivity_tolerance": 1.5}, "devices.sensor.sensitivity_tolerance must be a number between 0 and 1"),
+        ({"nominal_sensitivities": [32.8] * 3}, "devices.sensor.nominal_sensitivities must be a list of 6"),
         ({"bauds": 9600}, "config/cell.yaml: devices.sensor: unknown key 'bauds'"),
     ],
 )
@@ -181,7 +186,7 @@ def test_connect_reads_sensitivities_with_p(
     sensor = connect(sensors, emulator, sensitivities=list(FALLBACK.values))
     assert sensor.sensitivities_source == "sensor"
     assert sensor.sensitivities == REAL_UNIT_SENSITIVITIES
-    assert emulator.commands.get("p") == 1
+    assert emulator.commands.get("p") == 2  # two agreeing replies
     assert emulator.commands.get("E", 0) >= 1  # streaming stopped before anything else
 
 
@@ -229,7 +234,89 @@ def test_connect_under_line_faults_gets_either_the_true_or_the_configured_sensit
         expected = REAL_UNIT_SENSITIVITIES if sensor.sensitivities_source == "sensor" else FALLBACK
         assert sensor.sensitivities == expected  # never a half-parsed mixture
         sources.append(sensor.sensitivities_source)
-    assert sources.count("sensor") >= 6  # a garbled reply is asked again (3 garbles in a row: 1 in 8)
+    assert sources.count("sensor") >= 6  # a garbled reply is asked again (2 clean of 6 needed: 0.89 each)
+
+
+class ScriptedPort:
+    """A stand-in for the serial port that answers each `p` with the next scripted reply."""
+
+    timeout: float | None = None
+
+    def __init__(self, replies: list[bytes]) -> None:
+        self.replies = list(replies)
+        self.buffer = bytearray()
+        self.asked = 0
+
+    def reset_input_buffer(self) -> None:
+        self.buffer.clear()
+
+    def write(self, data: bytes) -> int:
+        if data == b"p" and self.replies:
+            self.asked += 1
+            self.buffer += self.replies.pop(0)
+        return len(data)
+
+    def read(self, size: int) -> bytes:
+        out = bytes(self.buffer[:size])
+        del self.buffer[:size]
+        return out
+
+
+def scripted_sensor(replies: list[bytes]) -> tuple[WacohSensor, ScriptedPort]:
+    sensor = WacohSensor(WacohConfig(port="scripted", sensitivities=FALLBACK, timeout_s=0.002))
+    port = ScriptedPort(replies)
+    sensor._ser = port  # type: ignore[assignment]
+    return sensor, port
+
+
+@settings(max_examples=300, deadline=500)
+@given(st.lists(st.one_of(st.just(REAL_LINE), corruptions), min_size=6, max_size=6))
+def test_corrupted_p_replies_give_the_exact_sensitivities_or_the_fallback_never_a_wrong_value(
+    replies: list[bytes],
+) -> None:
+    """The real driver's `p` exchange, each reply clean or corrupted (bit flips, truncation, inserted
+    bytes): it ends with the sensor's exact sensitivities or, having refused the replies, the
+    configured ones; never a wrong value, never another exception.  (Two replies hit by the very same
+    corruption are left out: no check could tell them from the truth.)"""
+    replies = [r for i, r in enumerate(replies) if r == REAL_LINE or r not in replies[:i]]
+    replies = [r if r.endswith(b"\n") else r + b"\n" for r in replies]  # every scripted reply is a line
+    sensor, port = scripted_sensor(replies)
+    try:
+        sens, source = sensor._request_sensitivities()
+    except ProtocolError as exc:  # the driver's own error is allowed, as one line
+        assert "\n" not in str(exc)
+        return
+    if source == "sensor":
+        assert sens == REAL_UNIT_SENSITIVITIES
+    else:
+        assert sens == FALLBACK
+    if replies[:6].count(REAL_LINE) >= 2:
+        assert source == "sensor"
+
+
+@pytest.mark.parametrize("byte", [0x1C, 0x1D, 0x1E, 0x1F])
+def test_a_control_byte_in_every_p_reply_falls_back_with_a_warning(
+    byte: int, caplog: pytest.LogCaptureFixture
+) -> None:
+    """One flipped bit turns CR into 0x1D: that raised an uncaught ValueError at connect."""
+    caplog.set_level(logging.WARNING, logger="drivers.wacoh")
+    sensor, port = scripted_sensor([REAL_LINE[:-2] + bytes([byte]) + b"\n"] * 6)
+    assert sensor._request_sensitivities() == (FALLBACK, "config")
+    assert port.asked == 6
+    warning = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warning) == 1 and "not one line ending in CR LF" in warning[0] and "\n" not in warning[0]
+
+
+def test_an_implausible_p_reply_is_refused_naming_the_axis(caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, logger="drivers.wacoh")
+    lost_dot = b"32.800,32.815,32.835,1653.801,1634816,1636.136\r\n"
+    sensor, _ = scripted_sensor([lost_dot] * 6)
+    assert sensor._request_sensitivities() == (FALLBACK, "config")
+    assert any("My = 1.63482e+06" in r.getMessage() for r in caplog.records)
+    # One bad reply among good ones costs nothing but a request.
+    sensor, port = scripted_sensor([lost_dot, REAL_LINE, REAL_LINE])
+    assert sensor._request_sensitivities() == (REAL_UNIT_SENSITIVITIES, "sensor")
+    assert port.asked == 3
 
 
 # ------------------------------------------------------------------------------------ polling
@@ -439,6 +526,56 @@ def test_closed_emulator_raises_link_lost_instead_of_hanging(
     assert time.monotonic() - t0 < 2.0
     sensor.disconnect()  # closing a dead link does not raise
     assert not sensor.connected
+
+
+@pytest.mark.parametrize("delay_prob", [1.0, 0.4])
+def test_a_late_reply_is_never_returned_as_the_next_reading(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor], delay_prob: float
+) -> None:
+    """Replies 12 ms late against a 5 ms timeout: each arrives while a later request waits.  Taken as
+    that request's answer, 13 of 60 reads returned the previous record; the record number says whose
+    reply it is."""
+    source = Source()
+    emulator = make_emulator(source, offset_lsb=np.zeros(6), noise=0.0, seed=3,
+                             faults=FaultConfig(reply_delay_s=0.012, reply_delay_prob=delay_prob))
+    sensor = connect(sensors, emulator, timeout_s=0.005, max_consecutive_failures=10_000)
+    sens = sensor.sensitivities.as_array()
+    rng = np.random.default_rng(12)
+    valid = 0
+    for _ in range(120):
+        source.value = random_wrench(rng)  # a new value every read: a stale reply would be caught
+        w = sensor.read()
+        if w.valid:
+            valid += 1
+            assert close_to(w.vector, source.value, 0.5, sens), "a stale record was returned as new"
+        else:
+            assert np.all(np.isnan(w.vector))  # the missing reading
+        if delay_prob == 1.0 and _ % 3 == 0:
+            time.sleep(0.004)  # vary the phase, so late replies land inside later reads' windows
+    assert emulator.replies_delayed > 0
+    assert sensor.records_stale > 0  # late replies did arrive during later reads, and were discarded
+    if delay_prob == 1.0:
+        assert valid == 0  # every reply is later than its read's deadline
+    else:
+        assert valid >= 20, sensor.counters()
+
+
+def test_a_missing_reply_costs_the_configured_timeout(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor]
+) -> None:
+    """The read loop restarted pyserial's per-read timeout: 5 ms cost 10.3 ms."""
+    emulator = make_emulator(Source())
+    timeout = 0.005
+    sensor = connect(sensors, emulator, timeout_s=timeout, max_consecutive_failures=10_000)
+    emulator.faults.drop_reply_prob = 1.0
+    durations = []
+    for _ in range(15):
+        t0 = time.monotonic()
+        w = sensor.read()
+        durations.append(time.monotonic() - t0)
+        assert not w.valid
+    median = float(np.median(durations))
+    assert timeout <= median <= timeout + 0.003, durations
 
 
 # ------------------------------------------------------------------------------------ hygiene, speed
