@@ -47,6 +47,10 @@ def fault_matrix(cfg: CellConfig, stale_after_s: float) -> list[Fault]:
         Fault("modbus_exceptions", "exceptions 1.0", "fault", 2, "TM5"),
         Fault("sensor_silent", "sensor drop 1.0", "safety_stop", invalid, "force"),
         Fault("sensor_garbage", "sensor garbage 1.0", "safety_stop", invalid, "force"),
+        # Replies 80 ms late against the emulated cell's 50 ms sensor timeout: each answers an earlier
+        # request, so every one is discarded as stale (`stale_records_discarded`), never taken as new, and
+        # the readings go missing until the safety stop.
+        Fault("sensor_late_replies", "sensor delay 80", "safety_stop", invalid, "force"),
     ]
 
 
@@ -113,6 +117,7 @@ def bench_faults(cfg: CellConfig, robot: RobotModel, inject_at: int = 60, cycles
                 wall = time.perf_counter() - t0
                 raise_if_interrupted(result.outcome)
                 arm_state = holder.arm.lifecycle
+                stale = getattr(holder.sensor, "records_stale", None)
             finally:
                 holder.close()
             try:
@@ -130,6 +135,7 @@ def bench_faults(cfg: CellConfig, robot: RobotModel, inject_at: int = 60, cycles
                 "arm_stopped": arm_state is not Lifecycle.ARMED,
                 # every cycle logged, plus the sample that tripped a safety stop
                 "recording_ok": rows_logged in (result.cycles, result.cycles + 1),
+                "stale_records_discarded": stale,
                 "wall_s": round(wall, 2),
             }
             log.info("fault %s: %s after %s periods (%s)", fault.name, result.outcome, after, result.reason)

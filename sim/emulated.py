@@ -5,7 +5,7 @@ sensor are separate machines: the host's control loop then does not share an int
 That process prints one JSON line `{"port": ..., "tty": ...}` and takes fault-injection commands on
 stdin, one per line, each answered by `{"ack": ...}` (or `{"error": ...}`) once in effect:
 `drop_link 1.5`, `freeze 2`, `unfreeze`, `delay 20 1.0`, `exceptions 1.0`, `clear`,
-`sensor garbage 0.3`, `sensor split 0.5`, `sensor drop 0.2`, `sensor clear`, `quit`.
+`sensor garbage 0.3`, `sensor split 0.5`, `sensor drop 0.2`, `sensor delay 12 [0.4]`, `sensor clear`, `quit`.
 """
 
 from __future__ import annotations
@@ -183,7 +183,7 @@ def serve_cell(cfg: CellConfig, seed: int | None, scene: str) -> int:
 # change the command's meaning, e.g. `delay 20 -1` read as `delay 20`: for ever).
 ARM_COMMANDS = {"drop_link": (1, 1), "freeze": (0, 1), "unfreeze": (0, 0), "delay": (1, 2), "exceptions": (0, 1),
                 "clear": (0, 0)}
-SENSOR_COMMANDS = {"garbage": (1, 1), "split": (1, 1), "drop": (1, 1), "clear": (0, 0)}
+SENSOR_COMMANDS = {"garbage": (1, 1), "split": (1, 1), "drop": (1, 1), "delay": (1, 2), "clear": (0, 0)}
 
 
 def _numbers(words: list[str], bounds: tuple[int, int], what: str, probability: bool = False) -> list[float]:
@@ -209,6 +209,12 @@ def _apply(words: list[str], arm_emu: Any, sensor_faults: Any) -> None:
         if len(words) < 2 or words[1] not in SENSOR_COMMANDS:
             raise ValueError(f"sensor fault must be one of {', '.join(SENSOR_COMMANDS)}")
         kind = words[1]
+        if kind == "delay":  # `sensor delay MS [PROBABILITY]`: replies late by MS, with that probability
+            ms = _numbers(words[2:3], (1, 1), "sensor delay")[0]
+            prob = _numbers(words[3:], (0, 1), "sensor delay", probability=True)
+            sensor_faults.reply_delay_s = ms / 1000.0
+            sensor_faults.reply_delay_prob = prob[0] if prob else 1.0
+            return
         p = _numbers(words[2:], SENSOR_COMMANDS[kind], f"sensor {kind}", probability=True)
         if kind == "garbage":
             sensor_faults.garbage_prob = p[0]
@@ -218,6 +224,7 @@ def _apply(words: list[str], arm_emu: Any, sensor_faults: Any) -> None:
             sensor_faults.drop_reply_prob = p[0]
         else:
             sensor_faults.garbage_prob = sensor_faults.split_prob = sensor_faults.drop_reply_prob = 0.0
+            sensor_faults.reply_delay_s = 0.0
         return
     if head not in ARM_COMMANDS:
         raise ValueError(f"unknown command '{head}' (known: {', '.join([*ARM_COMMANDS, 'sensor', 'quit'])})")

@@ -372,8 +372,23 @@ def test_bench_faults_detects_every_fault_in_its_budget(capsys):
     code = main(["-q", "bench", "faults", "--json"])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert set(out["faults"]) == {"link_loss", "stale_robot_data", "late_replies", "modbus_exceptions",
-                                  "sensor_silent", "sensor_garbage"}
+                                  "sensor_silent", "sensor_garbage", "sensor_late_replies"}
+    # late sensor replies were seen and discarded as stale, never taken as new readings
+    assert out["faults"]["sensor_late_replies"]["stale_records_discarded"] >= 1
     for name, row in out["faults"].items():
         assert row["detected"] and row["within_budget"] and row["arm_stopped"] and row["recording_ok"], (name, row)
     assert out["link_loss_detection_periods"] <= 2
     assert out["failures"] == 0 and code == 0
+
+
+def test_the_sensor_delay_command_sets_the_emulators_reply_delay():
+    from sim.emulated import _apply
+    from sim.wacoh_emulator import FaultConfig
+
+    faults = FaultConfig()
+    _apply("sensor delay 12 0.4".split(), _Recorder(), faults)
+    assert faults.reply_delay_s == pytest.approx(0.012) and faults.reply_delay_prob == pytest.approx(0.4)
+    _apply("sensor clear".split(), _Recorder(), faults)
+    assert faults.reply_delay_s == 0.0
+    with pytest.raises(ValueError, match="<= 1"):
+        _apply("sensor delay 12 4".split(), _Recorder(), faults)
