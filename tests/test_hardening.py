@@ -386,9 +386,9 @@ def test_the_sensor_delay_command_sets_the_emulators_reply_delay():
     from sim.wacoh_emulator import FaultConfig
 
     faults = FaultConfig()
-    _apply("sensor delay 12 0.4".split(), _Recorder(), faults)
+    _apply(["sensor", "delay", "12", "0.4"], _Recorder(), faults)
     assert faults.reply_delay_s == pytest.approx(0.012) and faults.reply_delay_prob == pytest.approx(0.4)
-    _apply("sensor clear".split(), _Recorder(), faults)
+    _apply(["sensor", "clear"], _Recorder(), faults)
     assert faults.reply_delay_s == 0.0
     with pytest.raises(ValueError, match="<= 1"):
-        _apply("sensor delay 12 4".split(), _Recorder(), faults)
+        _apply(["sensor", "delay", "12", "4"], _Recorder(), faults)
