@@ -99,12 +99,13 @@ class ContactPredictor(FastPredictor):
             x[self._nw:] = self._derived(q, dq, rigid + external)
         learned = np.zeros_like(rigid)
         learned[self.outputs] = self.forest.predict(x)
-        if self.model.coverage is not None:
-            w = self.model.coverage.weight_one(q, dq, ddq)
-            if self.coverage is not None:  # a blending model (H1): the learned part by its trust
+        trust = self.model.coverage
+        if trust is not None and (trust.gates or self.want_variance):
+            w = trust.weight_one(q, dq, ddq) if trust.gates else np.ones(self.n)
+            if self.coverage is not None:  # a blending model (H1) whose trust can fall: the learned part by it
                 learned *= w
             if self.want_variance:
-                self.variance = self.model.coverage.sigma(dq[None, :], w[None, :])[0] ** 2
+                self.variance = trust.sigma(dq[None, :], w[None, :])[0] ** 2
         return rigid, learned
 
     def predict_contact(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, external: np.ndarray) -> np.ndarray:

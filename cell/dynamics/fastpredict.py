@@ -158,7 +158,9 @@ class FastPredictor:
         # Trust and uncertainty (cell/dynamics/uncertainty.py): `coverage` blends the learned part (H1),
         # `trust_model` is any hybrid's, for `last_sigma`.
         self.trust_model = model.coverage if model.kind != "D" else None
-        self.coverage = self.trust_model if self.trust_model is not None and self.trust_model.blend else None
+        # (a model whose trust is 1 everywhere has nothing to blend: no per-sample work for it)
+        self.coverage = (self.trust_model if self.trust_model is not None and self.trust_model.blend
+                         and self.trust_model.gates else None)
         self._last_dq = np.zeros(self.n)
         self._last_w = np.ones(self.n)
         self.stock = stock
@@ -232,7 +234,8 @@ class FastPredictor:
         else:
             if self.trust_model is not None:
                 self._last_dq = dq
-                self._last_w = self.trust_model.weight_one(q, dq, ddq)
+                if self.trust_model.gates:
+                    self._last_w = self.trust_model.weight_one(q, dq, ddq)
                 if self.coverage is not None:
                     learned = learned * self._last_w[self.outputs]
             tau[self.outputs] += learned

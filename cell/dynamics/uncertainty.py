@@ -49,6 +49,11 @@ class Coverage:
     def bins(self) -> int:
         return int(self.counts.shape[1])
 
+    @property
+    def gates(self) -> bool:
+        """Whether the trust can be below 1 anywhere (coverage or sticking in use)."""
+        return self.min_count > 0 or self.stick_speed > 0
+
     # --------------------------------------------------------------------------------------- fit
     @staticmethod
     def fit(joints: list[int], q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, residual_hybrid: np.ndarray,
