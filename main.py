@@ -351,11 +351,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         out = bench_drivers(args.n)
     elif args.what == "model":
-        from tasks import lab
+        from tasks.lab_bench import bench_model
 
         if not args.data:
             raise ConfigError("bench model needs --data DATASET.yaml (make one with main.py collect)")
-        out = lab.bench_model(_lab_config(args), Path(args.data), Path(args.model) if args.model else None,
+        out = bench_model(_lab_config(args), Path(args.data), Path(args.model) if args.model else None,
                               train_samples=args.train_samples, fit_samples=args.fit_samples,
                               calls=args.calls, nthread=args.nthread, robot=args.robot)
     elif args.what == "plant":

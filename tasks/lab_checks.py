@@ -18,10 +18,20 @@ from cell.dynamics.physics import P1Model, P2Model
 log = logging.getLogger(__name__)
 
 
+def trajectory_errors(model: Any, tests: Sequence[Samples]) -> tuple[np.ndarray, np.ndarray]:
+    """Per test trajectory and joint: RMSE and nMSE (MSE over the variance of the measured torque)."""
+    rmse, nmse = [], []
+    for t in tests:
+        err = model.predict(t.q, t.dq, t.ddq, t.starts) - t.tau
+        mse = np.mean(err**2, axis=0)
+        rmse.append(np.sqrt(mse))
+        nmse.append(mse / np.maximum(np.var(t.tau, axis=0), 1e-12))
+    return np.asarray(rmse), np.asarray(nmse)
+
+
 def j123_rmse(model: Any, tests: Sequence[Samples]) -> float:
     """Mean over trajectories and joints 1-3 of the per-trajectory RMSE [N·m]."""
-    out = [np.sqrt(np.mean((model.predict(t.q, t.dq, t.ddq, t.starts) - t.tau) ** 2, axis=0))[:3] for t in tests]
-    return float(np.mean(out))
+    return float(np.mean(trajectory_errors(model, tests)[0][:, :3]))
 
 
 def with_payload(model: P2Model | LearnedModel, mass: float, com: np.ndarray | None) -> P2Model | LearnedModel:

@@ -11,7 +11,8 @@ import yaml
 from cell.dataset import load_split
 from cell.dynamics.artefact import load_model
 from cell.dynamics.learned import LearnedModel
-from tasks.lab import bench_model, collect, evaluate, lab_robot, train
+from tasks.lab import collect, evaluate, lab_robot, train
+from tasks.lab_bench import bench_model
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 import time
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -74,13 +75,18 @@ def plant_like_torque(robot, s: Samples) -> np.ndarray:
     return rb + 4.0 * s.dq + 5.0 * sign + ripple + stribeck
 
 
+def fit_h1(robot, params: XGBParams, coverage=None) -> tuple[Samples, Any, Any]:
+    """4000 samples of plant-like torque, the P2 identified on them and an H1 with windowed own-joint inputs."""
+    s = motion(4000, 0)
+    s.tau = plant_like_torque(robot, s) + np.random.default_rng(1).normal(0, 0.3, s.q.shape)
+    p2 = identify_p2(robot, s.q, s.dq, s.ddq, s.tau)
+    spec = FeatureSpec(window=3, grouping="own", physics_inputs=True, friction_harmonics=3)
+    return s, p2, fit_learned("H1", robot, s, spec, params, p2=p2, coverage=coverage)
+
+
 @pytest.fixture(scope="module")
 def fitted(robot_module):
-    s = motion(4000, 0)
-    s.tau = plant_like_torque(robot_module, s) + np.random.default_rng(1).normal(0, 0.3, s.q.shape)
-    p2 = identify_p2(robot_module, s.q, s.dq, s.ddq, s.tau)
-    spec = FeatureSpec(window=3, grouping="own", physics_inputs=True, friction_harmonics=3)
-    h1 = fit_learned("H1", robot_module, s, spec, SMALL, p2=p2)
+    s, p2, h1 = fit_h1(robot_module, SMALL)
     d = fit_learned("D", robot_module, s, FeatureSpec(window=1, grouping="per_joint", joints=6), SMALL)
     return s, p2, h1, d
 

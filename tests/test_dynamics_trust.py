@@ -13,14 +13,12 @@ import pytest
 from cell.dataset import Samples
 from cell.dynamics.artefact import load_model, save_model
 from cell.dynamics.fastpredict import FastPredictor
-from cell.dynamics.features import FeatureSpec
-from cell.dynamics.learned import LearnedModel, XGBParams, fit_learned
-from cell.dynamics.physics import identify_p2
+from cell.dynamics.learned import LearnedModel, XGBParams
 from cell.dynamics.uncertainty import SPEED_EDGES, Coverage, CoverageConfig
 from cell.observer import KalmanObserver
 from drivers.interfaces import ArmState
 from tasks.lab import TrainOptions, fit_model
-from tests.test_dynamics_learned import motion, plant_like_torque
+from tests.test_dynamics_learned import fit_h1, motion
 
 # One thread: on a 2-core machine busy with another job, XGBoost's two threads spin against it (30 s vs 0.2 s).
 SMALL = XGBParams(n_estimators=60, max_depth=5, learning_rate=0.2, nthread=1, early_stopping_rounds=10)
@@ -176,12 +174,7 @@ def robot_module():
 
 @pytest.fixture(scope="module")
 def fitted(robot_module):
-    s = motion(4000, 0)
-    s.tau = plant_like_torque(robot_module, s) + np.random.default_rng(1).normal(0, 0.3, s.q.shape)
-    p2 = identify_p2(robot_module, s.q, s.dq, s.ddq, s.tau)
-    spec = FeatureSpec(window=3, grouping="own", physics_inputs=True, friction_harmonics=3)
-    h1 = fit_learned("H1", robot_module, s, spec, SMALL, p2=p2, coverage=COVERAGE)
-    return s, p2, h1
+    return fit_h1(robot_module, SMALL, COVERAGE)
 
 
 def without_coverage(model: LearnedModel) -> LearnedModel:
