@@ -502,19 +502,29 @@ def test_bench_reports_cycle_times() -> None:
 
 @pytest.mark.timeout(20)
 def test_rearming_after_a_lost_write_reply_uses_a_new_host_sequence(arm: TM5ModbusArm, emulator: TM5Emulator,
-                                                                    plant: FakePlant) -> None:
+                                                                    plant: FakePlant, monkeypatch) -> None:
     # A write whose reply is lost may still have reached the robot-side program, which then acted on its
     # host sequence: that number is used up.  Re-arming must send the next one (the robot ignores a
     # repeated number, so its latched stop would never clear and arming would fail every time).
     arm.arm()
     q = arm.read_state().q
-    arm.send_target(q)
-    emulator.delay_replies(200, seconds=0.05)
+    for i in range(5):
+        arm.send_target(q + 0.001 * i)
+        time.sleep(DT)
+    real_call = arm._call
+
+    def acted_but_reply_lost(op, address, fn, *, may_reconnect):
+        rr = real_call(op, address, fn, may_reconnect=may_reconnect)
+        if op == "write holding":
+            raise arm._link_lost(f"{op} {address}: no valid reply (the robot acted on it)")
+        return rr
+
+    monkeypatch.setattr(arm, "_call", acted_but_reply_lost)
     with pytest.raises(DriverError):
-        arm.send_target(q + 0.001)
-    time.sleep(0.06)
-    emulator.clear_faults()
-    arm.arm()  # first attempt
+        arm.send_target(q)
+    monkeypatch.setattr(arm, "_call", real_call)
+    wait_for(lambda: plant.hold_calls >= 1, what="the robot-side watchdog")  # the host went quiet
+    arm.arm()  # first attempt: the IDLE must carry a new sequence to clear the hold
     assert read_until_ok(arm).status.ok
     accepted = len(plant.accepted_targets)
     arm.send_target(q)
