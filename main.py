@@ -308,7 +308,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
     """Randomised insertions on the simulated cell with the force source `run` would use for the peg."""
-    from sim.bench_peg import bench_peg
+    from bench.peg import bench_peg
     from tasks.peg_config import load_peg_config
 
     cfg = load_config(args.config)
@@ -343,11 +343,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "peg-in-hole":
         out = bench_peg_in_hole(args)
     elif args.what == "sim":
-        from sim.bench import bench_sim
+        from bench.timing import bench_sim
 
         out = bench_sim(load_config(args.config), seed=args.seed)
     elif args.what == "drivers":
-        from sim.bench import bench_drivers
+        from bench.timing import bench_drivers
 
         out = bench_drivers(args.n)
     elif args.what == "model":
@@ -359,14 +359,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
                               train_samples=args.train_samples, fit_samples=args.fit_samples,
                               calls=args.calls, nthread=args.nthread, robot=args.robot)
     elif args.what == "plant":
-        from sim.characterise import characterise_plant
+        from bench.characterise import characterise_plant
 
         cfg = load_config(args.config)
         if args.plant:
             cfg.plant = str(Path(args.plant).resolve())
         out = characterise_plant(cfg, seed=args.seed)
     elif args.what == "faults":
-        from sim.bench_faults import bench_faults
+        from bench.faults import bench_faults
 
         cfg = load_config(args.config)
         out = bench_faults(cfg, robot_for(cfg, "wipe"))

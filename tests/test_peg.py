@@ -112,8 +112,8 @@ def test_wrench_errors_only_over_the_insertion():
 
 # --------------------------------------------------------------------------------------- on the sim
 def _trial(cfg, offset=(0.0, 0.0), tilt=(0.0, 0.0), **overrides):
+    from bench.peg import run_trial
     from main import robot_for
-    from sim.bench_peg import run_trial
 
     robot = robot_for(cfg, "peg")
     pcfg = replace(PegConfig(), **overrides)
@@ -132,7 +132,7 @@ def test_aligned_peg_is_inserted_and_retracted(cfg):
 def test_a_jam_that_cannot_be_cleared_fails_by_name_with_the_arm_stopped(cfg, monkeypatch):
     # A hole only 12 mm deep can never reach the 27 mm target: the peg bottoms out and stalls.
     cfg.scene = replace(cfg.scene, hole_depth=0.012)
-    import sim.bench_peg as bench
+    import bench.peg as bench
 
     holders = []
     real = bench.SimCell

@@ -493,7 +493,7 @@ def test_connect_refused_is_link_lost_quickly() -> None:
 
 @pytest.mark.timeout(30)
 def test_bench_reports_cycle_times() -> None:
-    from sim.bench import bench_modbus
+    from bench.timing import bench_modbus
 
     result = bench_modbus(200)
     assert result["n"] == 200

@@ -15,9 +15,9 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from bench.timing import bench_serial
 from drivers.errors import ConfigError, LinkLostError, ProtocolError
 from drivers.wacoh import RAW_ZERO, Sensitivities, WacohConfig, WacohSensor, decode_counts
-from sim.bench import bench_serial
 from sim.wacoh_emulator import REAL_UNIT_SENSITIVITIES, FaultConfig, WacohEmulator
 from tests.test_wacoh_codec import REAL_LINE, corruptions
 
