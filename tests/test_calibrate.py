@@ -11,11 +11,13 @@ import numpy as np
 import pytest
 import yaml
 
+from app.cells import calibration_cells
+from app.tasks_registry import robot_for
 from cell.config import CONFIG_DIR, load_config
 from cell.recorder import read_log
 from cell.virtual_sensor import build_virtual_source
 from drivers.errors import ConfigError, DataError
-from main import calibration_cells, main, robot_for
+from main import main
 from tasks.calibrate import OperatorLoads, artefacts_missing, calibrate, error_split, prepare
 from tests.vsfixtures import artefacts
 

@@ -216,7 +216,7 @@ def test_training_plan_adds_sweeps_around_the_given_posture(robot, cfg):
 
 @pytest.mark.parametrize("tool", ["wipe", "peg"])
 def test_each_tools_working_posture_is_free_and_above_its_task_start(cfg, tool):
-    from main import SWEEP_LIFT_M, TASK_TOOLS, build_task, robot_for, working_posture
+    from app.tasks_registry import SWEEP_LIFT_M, TASK_TOOLS, build_task, robot_for, working_posture
     from tasks.lab import lab_robot
 
     robot = robot_for(cfg, tool)

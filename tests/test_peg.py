@@ -112,8 +112,8 @@ def test_wrench_errors_only_over_the_insertion():
 
 # --------------------------------------------------------------------------------------- on the sim
 def _trial(cfg, offset=(0.0, 0.0), tilt=(0.0, 0.0), **overrides):
+    from app.tasks_registry import robot_for
     from bench.peg import run_trial
-    from main import robot_for
 
     robot = robot_for(cfg, "peg")
     pcfg = replace(PegConfig(), **overrides)
@@ -165,7 +165,7 @@ def test_the_surveyed_face_defines_the_hole_frame(cfg):
     # makes the face level at the nominal height, and a point on the face reads depth 0 in it.
     import pinocchio as pin
 
-    from main import robot_for
+    from app.tasks_registry import robot_for
     from tasks.peg import PegInHoleTask
 
     robot = robot_for(cfg, "peg")
@@ -183,7 +183,7 @@ def test_the_surveyed_face_defines_the_hole_frame(cfg):
 
 
 def test_a_face_tilted_beyond_the_limit_fails_by_name(cfg):
-    from main import robot_for
+    from app.tasks_registry import robot_for
     from tasks.peg import PegInHoleTask
 
     robot = robot_for(cfg, "peg")
@@ -198,7 +198,7 @@ def test_a_face_tilted_beyond_the_limit_fails_by_name(cfg):
 
 def _bare_task(cfg, pc: PegConfig | None = None):
     """A peg task on the default cell, driven by hand (no loop): for its single steps."""
-    from main import robot_for
+    from app.tasks_registry import robot_for
     from tasks.peg import PegInHoleTask
 
     return PegInHoleTask(pc or PegConfig(), robot_for(cfg, "peg"), np.asarray(cfg.scene.hole_center),

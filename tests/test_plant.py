@@ -179,7 +179,7 @@ class TestPegFixture:
 
     @staticmethod
     def insert(cfg, dx: float, tilt_deg: float) -> float:
-        from main import robot_for
+        from app.tasks_registry import robot_for
 
         robot = robot_for(cfg, "peg")
         profile = load_profile(resolve(cfg.plant))

@@ -37,7 +37,8 @@ def artefacts() -> dict[str, Any]:
     """{"root", "cfg", "prepare" (its summary), "robot"}: built on first use."""
     if _CACHE:
         return _CACHE
-    from main import calibration_cells, robot_for
+    from app.cells import calibration_cells
+    from app.tasks_registry import robot_for
     from tasks.calibrate import prepare
 
     root = Path(tempfile.mkdtemp(prefix="tmcell-vs-"))

@@ -1,0 +1,113 @@
+"""The `bench` command: the benchmark registry (name -> what it measures on which cell) and its dispatch."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from app.common import emit, load_cell_config
+from app.sensing import ensure_virtual_artefacts, make_force_source
+from app.tasks_registry import robot_for
+from cell.config import load_config
+from cell.loop import OpenCell
+from drivers.errors import ConfigError
+
+log = logging.getLogger("tmcell")
+
+
+@dataclass(frozen=True)
+class Bench:
+    """One benchmark: `run(args)` -> its summary; `passed(summary)` false makes the command exit 1."""
+
+    run: Callable[[argparse.Namespace], dict[str, Any]]
+    passed: Callable[[dict[str, Any]], bool] = lambda out: True
+
+
+def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
+    """Randomised insertions on the simulated cell with the force source `run` would use for the peg."""
+    from bench.peg import bench_peg
+    from tasks.peg_config import load_peg_config
+
+    cfg = load_cell_config(args)
+    robot = robot_for(cfg, "peg")
+    pcfg = load_peg_config(cfg.tasks.get("peg"), f"{cfg.source}: tasks.peg", args.force_source)
+    if args.force_source == "virtual":
+        ensure_virtual_artefacts(cfg, "peg", "sim", robot)
+
+    def wrap(cell: OpenCell) -> OpenCell:
+        return make_force_source(cfg, args.force_source, "peg", cell, robot)
+
+    if args.trials < 1 or args.max_offset_mm < 0 or args.max_tilt_deg < 0:
+        raise ConfigError("bench peg-in-hole: --trials must be >= 1, --max-offset-mm and --max-tilt-deg >= 0")
+    if args.only is not None and not all(0 <= k < args.trials for k in args.only):
+        raise ConfigError(f"bench peg-in-hole: --only {args.only}: trial numbers must lie in 0..{args.trials - 1}")
+    record = None
+    if args.record:
+        from cell.recorder import new_run_dir
+
+        record = new_run_dir(Path(cfg.recording.directory), "bench-peg")
+        log.info("recording every trial under %s", record)
+    return bench_peg(cfg, robot, pcfg, args.trials, args.seed if args.seed is not None else 0,
+                     only=args.only, record=record,
+                     max_offset_m=args.max_offset_mm * 1e-3, max_tilt_deg=args.max_tilt_deg,
+                     peg_diameter=args.peg_diameter_mm * 1e-3 if args.peg_diameter_mm else None,
+                     wrap=wrap, force_source=args.force_source)
+
+
+def _bench_sim(args: argparse.Namespace) -> dict[str, Any]:
+    from bench.timing import bench_sim
+
+    return bench_sim(load_config(args.config), seed=args.seed)
+
+
+def _bench_plant(args: argparse.Namespace) -> dict[str, Any]:
+    from bench.characterise import characterise_plant
+
+    return characterise_plant(load_cell_config(args), seed=args.seed)
+
+
+def _bench_drivers(args: argparse.Namespace) -> dict[str, Any]:
+    from bench.timing import bench_drivers
+
+    return bench_drivers(args.n)
+
+
+def _bench_model(args: argparse.Namespace) -> dict[str, Any]:
+    from tasks.lab_bench import bench_model
+
+    if not args.data:
+        raise ConfigError("bench model needs --data DATASET.yaml (make one with main.py collect)")
+    return bench_model(load_cell_config(args), Path(args.data), Path(args.model) if args.model else None,
+                       train_samples=args.train_samples, fit_samples=args.fit_samples,
+                       calls=args.calls, nthread=args.nthread, robot=args.robot)
+
+
+def _bench_faults(args: argparse.Namespace) -> dict[str, Any]:
+    from bench.faults import bench_faults
+
+    cfg = load_config(args.config)
+    return bench_faults(cfg, robot_for(cfg, "wipe"))
+
+
+BENCHES: dict[str, Bench] = {
+    "sim": Bench(_bench_sim),
+    "plant": Bench(_bench_plant),
+    "drivers": Bench(_bench_drivers),
+    "model": Bench(_bench_model),
+    "peg-in-hole": Bench(bench_peg_in_hole),
+    "faults": Bench(_bench_faults, passed=lambda out: out["failures"] == 0),
+}
+BENCH_NAMES = tuple(BENCHES)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    chosen = BENCHES.get(args.what)
+    if chosen is None:
+        raise ConfigError(f"bench {args.what}: unknown benchmark")
+    out = chosen.run(args)
+    emit(out, args.json)
+    return 0 if chosen.passed(out) else 1

@@ -1,0 +1,83 @@
+"""Command bodies that work a cell: `run` a task, `status`, `emulate` a device."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from app.cells import cell_kind, open_cell
+from app.common import emit, load_cell_config
+from app.sensing import ensure_virtual_artefacts, make_force_source
+from app.tasks_registry import TASKS, build_task, robot_for
+from cell.config import load_config
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    cfg = load_cell_config(args)
+    spec = TASKS[args.task]
+    robot = robot_for(cfg, spec.tool)
+    task, max_duration = build_task(args.task, cfg, robot, args.force_source)
+    kind = cell_kind(cfg, args.cell)
+    if args.force_source == "virtual":
+        ensure_virtual_artefacts(cfg, spec.tool, kind, robot, args.seed)
+    holder = open_cell(cfg, kind, robot, args.seed, spec.scene)
+    try:
+        cell = make_force_source(cfg, args.force_source, spec.tool, holder.open(), robot)
+        from tasks.runner import run_task
+
+        summary = run_task(task, cell, cfg, robot, max_duration, record=not args.no_record,
+                           extra_summary={"seed": args.seed})
+    finally:
+        holder.close()
+    emit(summary, args.json)
+    if summary["outcome"] == "interrupted":
+        return 130
+    return 0 if summary["outcome"] == "done" else 1
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config)
+    robot = robot_for(cfg, "wipe")
+    holder = open_cell(cfg, cell_kind(cfg, args.cell), robot, args.seed, None)
+    try:
+        cell = holder.open()
+        state = cell.arm.read_state()
+        wrench = cell.force.read(state)
+        tcp = robot.tcp_pose(state.q).translation
+        out = {
+            "cell": cell.kind,
+            "lifecycle": cell.arm.lifecycle.value,
+            "t": state.t,
+            "q_deg": np.degrees(state.q).round(3).tolist(),
+            "dq_deg_s": np.degrees(state.dq).round(3).tolist(),
+            "tau_nm": np.round(state.tau, 3).tolist(),
+            "status": {k: bool(v) for k, v in vars(state.status).items()},
+            "tcp_m": np.round(tcp, 4).tolist(),
+            "wrench": np.round(wrench.vector, 3).tolist(),
+        }
+    finally:
+        holder.close()
+    emit(out, args.json)
+    return 0
+
+
+def cmd_emulate(args: argparse.Namespace) -> int:
+    """Serve one device emulator until Ctrl+C (for standard tools or a second process)."""
+    if args.device == "cell":
+        from sim.emulated import serve_cell
+
+        cfg = load_cell_config(args)
+        return serve_cell(cfg, args.seed, args.scene or cfg.scene.kind)
+    if args.device == "arm":
+        from sim.tm5_emulator import emulate_arm_main
+
+        plant = None
+        if not args.kinematic:
+            from sim.cell import make_plant
+
+            plant = make_plant(load_config(args.config), args.seed, "free")
+        return emulate_arm_main(args.port, plant)
+    from sim.wacoh_emulator import emulate_sensor_main
+
+    return emulate_sensor_main(args.seed or 0)

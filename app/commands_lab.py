@@ -1,0 +1,79 @@
+"""Command bodies of the model lab and the virtual sensor: prepare, calibrate, collect, train, evaluate, import."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from app.cells import calibration_cells, cell_identity, cell_kind, open_cell
+from app.common import emit, load_cell_config
+from app.sensing import run_prepare
+from app.tasks_registry import robot_for
+
+
+def cmd_prepare(args: argparse.Namespace) -> int:
+    cfg = load_cell_config(args)
+    out = run_prepare(cfg, args.tool, args.cell, args.seed, args.samples, args.force)
+    emit(out, args.json)
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from tasks.calibrate import calibrate
+
+    cfg = load_cell_config(args)
+    robot = robot_for(cfg, args.tool)
+    opener, applier = calibration_cells(cfg, args.cell, args.tool, robot, args.seed)
+    out = calibrate(cfg, args.tool, robot, opener, applier, Path(args.model) if args.model else None,
+                    Path(args.out) if args.out else None, cell_identity(cfg, args.cell, args.seed))
+    emit(out, args.json)
+    return 0
+
+
+def cmd_collect(args: argparse.Namespace) -> int:
+    from tasks import lab
+
+    cfg = load_cell_config(args)
+    robot = lab.lab_robot(cfg)
+    kind = cell_kind(cfg, args.cell)
+
+    def opener() -> Any:
+        return open_cell(cfg, kind, robot, args.seed, "free")
+
+    out = lab.collect(cfg, opener, Path(args.out), samples=args.samples, family=args.family,
+                      fourier_share=args.fourier_share, test_trajectories=args.test_trajectories,
+                      test_repeats=args.test_repeats, test_moves=args.test_moves,
+                      excitation=args.excitation, seed=args.plan_seed, robot=args.robot)
+    emit(out, args.json)
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from tasks import lab
+
+    out = lab.train(load_cell_config(args), Path(args.data), Path(args.out), kind=args.model, samples=args.samples,
+                    window=args.window, grouping=args.grouping, derivatives=args.derivatives,
+                    nthread=args.nthread, seed=args.seed or 0, robot=args.robot)
+    emit(out, args.json)
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from tasks import lab
+
+    curve = None if args.no_curve else args.curve if args.curve else lab.DEFAULT_CURVE
+    out = lab.evaluate(load_cell_config(args), Path(args.data), Path(args.out), train_samples=args.train_samples,
+                       large_samples=args.large_samples, curve=curve, nthread=args.nthread, seed=args.seed or 0,
+                       max_trees=args.max_trees, robot=args.robot, lofo=args.lofo)
+    emit(out, args.json)
+    return 0
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from tasks.import_ur10e import import_ur10e
+
+    out = import_ur10e(Path(args.out), train=args.train, test=args.test, loaded=args.loaded,
+                       max_gap_s=args.max_gap_s, payload_kg=args.payload_kg)
+    emit(out, args.json)
+    return 0

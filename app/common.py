@@ -1,0 +1,36 @@
+"""What the command bodies share: the cell config from --config and --plant, and printing a command's summary."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from cell.config import CellConfig, load_config
+from cell.configio import dumps_strict
+
+
+def load_cell_config(args: argparse.Namespace) -> CellConfig:
+    """The --config file, with the plant profile --plant (where the command takes one) in place of its own."""
+    cfg = load_config(args.config)
+    if getattr(args, "plant", None):
+        cfg.plant = str(Path(args.plant).resolve())
+    return cfg
+
+
+def emit(out: dict[str, Any], as_json: bool) -> None:
+    """The summary on stdout: one strict-JSON line, or `key: value` lines (a nested dict indented)."""
+    if as_json:
+        print(dumps_strict(out))
+        return
+    for key, value in out.items():
+        if isinstance(value, dict):
+            print(f"{key}:")
+            for k, v in value.items():
+                print(f"  {k}: {_fmt(v)}")
+        else:
+            print(f"{key}: {_fmt(value)}")
+
+
+def _fmt(v: Any) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)

@@ -1,0 +1,80 @@
+"""The force a task regulates with: the F/T sensor, or the tool's virtual sensor (its artefacts made ready first)."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from typing import Any
+
+from app.cells import calibration_cells, cell_identity, check_plant, is_simulated
+from app.tasks_registry import robot_for, working_posture
+from cell.config import CellConfig
+from cell.loop import OpenCell
+from cell.robot import RobotModel
+from drivers.errors import ConfigError
+
+log = logging.getLogger("tmcell")
+
+FORCE_SOURCES = ("virtual", "sensor")
+PREPARE_SAMPLES = 40_000  # `prepare`'s default collection: about half a minute of simulated motion per 10k
+
+
+def make_force_source(cfg: CellConfig, source: str, tool: str, cell: OpenCell, robot: RobotModel) -> OpenCell:
+    """The OpenCell a task runs on for --force-source: `sensor` keeps the F/T sensor in the loop;
+    `virtual` regulates with the tool's virtual sensor and keeps the F/T sensor (when the cell has
+    one) as the logged ground truth.  Every task builds its force source here."""
+    if source == "sensor":
+        return cell
+    if source != "virtual":
+        raise ConfigError(f"--force-source {source}: unknown (virtual or sensor)")
+    from cell.virtual_sensor import build_virtual_source
+
+    virtual = build_virtual_source(cfg.virtual_sensor, robot, tool, cfg.loop.period_s)
+    log.info("force source: virtual sensor (%s) for the %s tool; the F/T sensor is logged as ground truth",
+             virtual.label, tool)
+    return replace(cell, force=virtual, ground_truth=cell.force)
+
+
+def run_prepare(cfg: CellConfig, tool: str, kind: str, seed: int | None, samples: int, force: bool) -> dict[str, Any]:
+    """Collect, train the causal H1 and calibrate for `tool` on a `kind` cell (each step skipped when done)."""
+    from tasks.calibrate import prepare
+
+    robot = robot_for(cfg, tool)
+    check_plant(cfg, kind, seed, tool)
+    opener, applier = calibration_cells(cfg, kind, tool, robot, seed)
+    return prepare(cfg, tool, robot, opener, opener, applier, samples=samples, force=force,
+                   cell_info=cell_identity(cfg, kind, seed), working_posture=working_posture(cfg, tool, robot))
+
+
+def ensure_virtual_artefacts(cfg: CellConfig, tool: str, kind: str, robot: RobotModel,
+                             seed: int | None = None) -> None:
+    """The tool's model and calibration must be present and match: built on the spot for a simulated
+    or emulated cell (same plant, logged), refused with the command to run for the real one."""
+    from tasks.calibrate import artefacts_missing
+
+    why = artefacts_missing(cfg, robot, tool)
+    simulated = is_simulated(kind)
+    if not why:
+        if simulated:
+            _warn_other_plant(cfg, tool, seed)
+        return
+    if not simulated:
+        raise ConfigError(
+            f"virtual force sensor for the {tool} tool: {why}; make it on the cell with "
+            f"`main.py prepare --tool {tool} --cell real` (or `main.py calibrate --tool {tool} --cell real` when "
+            f"the model exists), or run with --force-source sensor"
+        )
+    log.warning("virtual force sensor for the %s tool: %s; building it now with `main.py prepare --tool %s` "
+                "on the simulated cell (once, a couple of minutes)", tool, why, tool)
+    run_prepare(cfg, tool, "sim", None, PREPARE_SAMPLES, force=False)
+
+
+def _warn_other_plant(cfg: CellConfig, tool: str, seed: int | None) -> None:
+    from cell.virtual_sensor import read_calibration_doc
+
+    made = read_calibration_doc(cfg.virtual_sensor.path("calibration", tool)).get("cell", {})
+    here = cell_identity(cfg, "sim", seed)
+    if made.get("kind") == "sim" and made.get("plant_sha256") != here["plant_sha256"]:
+        log.warning("the %s tool's virtual sensor was made on plant profile %s, this run uses %s: another arm "
+                    "(other friction, other ripple), expect larger force errors; `main.py prepare --tool %s --force` "
+                    "rebuilds it for this one", tool, made.get("plant"), here["plant"], tool)
