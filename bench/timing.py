@@ -15,7 +15,8 @@ from cell.robot import load_robot
 from cell.safety import SafetyMonitor
 from drivers.interfaces import JointLimits
 from drivers.tm5_modbus import N_JOINTS, TM5ModbusArm, TM5ModbusConfig
-from drivers.wacoh import WacohConfig, WacohSensor
+from drivers.wacoh import WacohSensor
+from drivers.wacoh_config import WacohConfig
 from sim.cell import make_sim_cell
 from sim.tm5_emulator import KinematicPlant, TM5Emulator
 from sim.wacoh_emulator import WacohEmulator

@@ -28,7 +28,8 @@ from cell.loop import OpenCell, WallTicker
 from drivers.errors import ConfigError, DriverError, LinkLostError
 from drivers.interfaces import JointLimits
 from drivers.tm5_modbus import TM5ModbusArm, TM5ModbusConfig, UserAreaLayout
-from drivers.wacoh import WacohConfig, WacohSensor
+from drivers.wacoh import WacohSensor
+from drivers.wacoh_config import WacohConfig
 
 log = logging.getLogger(__name__)
 

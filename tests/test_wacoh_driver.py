@@ -17,7 +17,9 @@ from hypothesis import strategies as st
 
 from bench.timing import bench_serial
 from drivers.errors import ConfigError, LinkLostError, ProtocolError
-from drivers.wacoh import RAW_ZERO, Sensitivities, WacohConfig, WacohSensor, decode_counts
+from drivers.wacoh import WacohSensor
+from drivers.wacoh_codec import RAW_ZERO, Sensitivities, decode_counts
+from drivers.wacoh_config import WacohConfig
 from sim.wacoh_emulator import REAL_UNIT_SENSITIVITIES, FaultConfig, WacohEmulator
 from tests.test_wacoh_codec import REAL_LINE, corruptions
 
@@ -265,7 +267,7 @@ class ScriptedPort:
 def scripted_sensor(replies: list[bytes]) -> tuple[WacohSensor, ScriptedPort]:
     sensor = WacohSensor(WacohConfig(port="scripted", sensitivities=FALLBACK, timeout_s=0.002))
     port = ScriptedPort(replies)
-    sensor._ser = port  # type: ignore[assignment]
+    sensor._link.ser = port  # type: ignore[assignment]
     return sensor, port
 
 

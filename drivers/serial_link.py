@@ -1,0 +1,121 @@
+"""A serial port for a request/reply device: opened 8N1, no flow control; writes; reads bounded by a deadline."""
+
+from __future__ import annotations
+
+import logging
+import select
+import termios
+import time
+
+import serial
+
+from drivers.errors import LinkLostError
+
+log = logging.getLogger(__name__)
+
+# What a vanished port raises: pyserial's errors, raw OS errors, and termios.error (not an OSError)
+# from tcflush; TypeError when pyserial's fd is already gone.
+LINK_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException, OSError, termios.error, TypeError)
+
+# Bit times per byte on an 8N1 line: start + 8 data + stop.
+_BITS_PER_BYTE = 10
+# pyserial reads block at most this long, so deadlines are kept to within a slice and a stream
+# reader notices a stop request promptly without changing the port timeout per call (a tcsetattr).
+READ_SLICE_S = 0.005
+# Writes are a few bytes, which leave at once unless the adapter is wedged, so their bound is not the
+# reply timeout: pyserial checks its write deadline *after* the bytes went out, so with a 5 ms bound
+# a thread descheduled for 5 ms between the call and that check raised a write timeout for a command
+# that was sent.  A wedged adapter is still noticed, this late at most.
+_WRITE_TIMEOUT_FLOOR_S = 0.2
+
+
+class SerialLink:
+    """One serial port (a pyserial port or URL); `label` names the device in errors ("WACOH sensor").
+
+    Every failure of an open port raises LinkLostError naming the device, the port and what failed.
+    """
+
+    def __init__(self, url: str, baudrate: int, timeout_s: float, label: str) -> None:
+        self.url = url
+        self.baudrate = baudrate
+        self.timeout_s = timeout_s  # per request, plus the reply's own time on the wire
+        self.label = label
+        self.ser: serial.Serial | None = None
+        self.fd: int | None = None  # None: a URL port without a file descriptor
+
+    def open(self) -> None:
+        try:
+            self.ser = serial.serial_for_url(
+                self.url,
+                baudrate=self.baudrate,
+                bytesize=serial.EIGHTBITS,
+                parity=serial.PARITY_NONE,
+                stopbits=serial.STOPBITS_ONE,
+                xonxoff=False,
+                rtscts=False,
+                dsrdtr=False,
+                timeout=min(self.timeout_s, READ_SLICE_S),
+                write_timeout=max(self.timeout_s, _WRITE_TIMEOUT_FLOOR_S),
+            )
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise LinkLostError(f"{self.label}: cannot open {self.url}: {exc}") from None
+        try:
+            self.fd = self.ser.fileno()
+        except (AttributeError, NotImplementedError, serial.SerialException):
+            self.fd = None
+
+    def close(self) -> None:
+        ser, self.ser, self.fd = self.ser, None, None
+        if ser is not None:
+            try:
+                ser.close()
+            except LINK_ERRORS as exc:
+                log.debug("%s on %s: close failed: %s", self.label, self.url, exc)
+
+    @property
+    def port(self) -> serial.Serial:
+        """The open port; LinkLostError when it is not open."""
+        if self.ser is None:
+            raise LinkLostError(f"{self.label} on {self.url}: port is not open")
+        return self.ser
+
+    def link_lost(self, what: str, exc: BaseException) -> LinkLostError:
+        return LinkLostError(f"{self.label} on {self.url}: {what} failed: {exc}")
+
+    def write(self, data: bytes, what: str) -> None:
+        try:
+            self.port.write(data)
+        except LINK_ERRORS as exc:
+            raise self.link_lost(what, exc) from None
+
+    def discard_input(self) -> None:
+        try:
+            self.port.reset_input_buffer()
+        except LINK_ERRORS as exc:
+            raise self.link_lost("clearing input", exc) from None
+
+    def read_chunk(self, size: int, deadline: float) -> bytes:
+        """Up to `size` bytes of what has arrived, waiting for the first one until `deadline` at most
+        (b'' then).  The wait is the time left, not pyserial's per-read timeout: a read loop that
+        restarted that timeout overshot the deadline by up to a whole timeout."""
+        port = self.port
+        left = max(0.0, deadline - time.monotonic())
+        try:
+            if self.fd is None:
+                port.timeout = left  # URL ports: no descriptor to wait on
+                return bytes(port.read(size))
+            readable, _, _ = select.select([self.fd], [], [], left)
+            if not readable:
+                return b""
+            # At least 1 byte after select said readable: a vanished device reads as an error then.
+            return bytes(port.read(max(1, min(size, port.in_waiting))))
+        except LINK_ERRORS as exc:
+            raise self.link_lost("read", exc) from None
+
+    def wire_time(self, n_bytes: int) -> float:
+        """Seconds `n_bytes` take on the line."""
+        return n_bytes * _BITS_PER_BYTE / self.baudrate
+
+    def reply_deadline(self, reply_bytes: int) -> float:
+        # The timeout plus the reply's own time on the wire, so slow baud rates do not time out early.
+        return time.monotonic() + self.timeout_s + self.wire_time(reply_bytes)
