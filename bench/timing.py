@@ -14,7 +14,9 @@ from cell.loop import ControlLoop
 from cell.robot import load_robot
 from cell.safety import SafetyMonitor
 from drivers.interfaces import JointLimits
-from drivers.tm5_modbus import N_JOINTS, TM5ModbusArm, TM5ModbusConfig
+from drivers.tm5_contract import TM5ModbusConfig
+from drivers.tm5_modbus import TM5ModbusArm
+from drivers.tm5_registers import N_JOINTS
 from drivers.wacoh import WacohSensor
 from drivers.wacoh_config import WacohConfig
 from sim.cell import make_sim_cell

@@ -8,7 +8,8 @@ from typing import Any
 
 from drivers.errors import DriverError
 from drivers.interfaces import JointLimits
-from drivers.tm5_modbus import TM5ModbusArm, TM5ModbusConfig
+from drivers.tm5_contract import TM5ModbusConfig
+from drivers.tm5_modbus import TM5ModbusArm
 from drivers.wacoh import WacohSensor
 from drivers.wacoh_config import WacohConfig
 

@@ -27,7 +27,8 @@ from cell.force import SensorForceSource
 from cell.loop import OpenCell, WallTicker
 from drivers.errors import ConfigError, DriverError, LinkLostError
 from drivers.interfaces import JointLimits
-from drivers.tm5_modbus import TM5ModbusArm, TM5ModbusConfig, UserAreaLayout
+from drivers.tm5_contract import TM5ModbusConfig, UserAreaLayout
+from drivers.tm5_modbus import TM5ModbusArm
 from drivers.wacoh import WacohSensor
 from drivers.wacoh_config import WacohConfig
 

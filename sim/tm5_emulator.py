@@ -21,7 +21,8 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.errors import ConfigError
 from drivers.interfaces import ArmState, ArmStatus
-from drivers.tm5_modbus import (
+from drivers.tm5_contract import UserAreaLayout
+from drivers.tm5_registers import (
     COIL_PLAY_PAUSE,
     COIL_STOP,
     DI_COUNT,
@@ -39,7 +40,6 @@ from drivers.tm5_modbus import (
     USER_AREA_LAST,
     Command,
     RobotFlags,
-    UserAreaLayout,
     floats_to_regs,
     int32_to_regs,
     pose_to_regs,

@@ -18,7 +18,9 @@ from pymodbus.constants import ExcCodes
 
 from drivers.errors import DriverError, LifecycleError, LinkLostError, ProtocolError, StaleDataError
 from drivers.interfaces import ArmState, ArmStatus, JointLimits, Lifecycle
-from drivers.tm5_modbus import RobotFlags, TM5ModbusArm, TM5ModbusConfig
+from drivers.tm5_contract import TM5ModbusConfig
+from drivers.tm5_modbus import TM5ModbusArm
+from drivers.tm5_registers import RobotFlags
 from sim.tm5_emulator import TM5Emulator
 
 pytestmark = pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
