@@ -25,8 +25,9 @@ from sim.drivers import SimArm, SimForceSensor
 from sim.plant import Plant
 from sim.profile import load_profile
 from tasks.base import SETUP_STATES
-from tasks.peg import PegInHoleTask, wrench_abs_errors
+from tasks.peg import PegInHoleTask
 from tasks.peg_config import PegConfig
+from tasks.peg_scoring import wrench_abs_errors
 
 log = logging.getLogger(__name__)
 

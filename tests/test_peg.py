@@ -8,8 +8,11 @@ import numpy as np
 import pytest
 
 from drivers.errors import ConfigError
-from tasks.peg import Contact, classify, rim_points, wrench_errors
 from tasks.peg_config import PegConfig, load_peg_config
+from tasks.peg_contact import Contact, classify
+from tasks.peg_geometry import rim_points
+from tasks.peg_scoring import wrench_errors
+from tasks.peg_touch import GuardedDescent
 
 
 @pytest.fixture
@@ -173,7 +176,7 @@ def test_the_surveyed_face_defines_the_hole_frame(cfg):
     task = PegInHoleTask(PegConfig(), robot, centre[:2], centre[2], cfg.loop.period_s,
                          np.asarray(cfg.robot.home, float))
     R = pin.exp3(np.array([np.radians(2.0), 0.0, 0.0]))
-    task._survey_points = [centre + R @ np.array([r * np.cos(a), r * np.sin(a), 0.0])
+    task.survey.points = [centre + R @ np.array([r * np.cos(a), r * np.sin(a), 0.0])
                            for r, a in ((0.0145, np.pi / 2), (0.0145, -np.pi / 2), (0.0145, np.pi))]
     assert task._fit_face()
     assert task.hole_tilt_deg == pytest.approx(2.0, abs=1e-6)
@@ -191,7 +194,7 @@ def test_a_face_tilted_beyond_the_limit_fails_by_name(cfg):
     task = PegInHoleTask(PegConfig(max_hole_tilt_deg=3.0), robot, centre[:2], centre[2], cfg.loop.period_s,
                          np.asarray(cfg.robot.home, float))
     s = np.tan(np.radians(6.0))
-    task._survey_points = [centre + np.array([x, y, s * x]) for x, y in ((0.0, 0.0145), (0.0, -0.0145), (-0.0145, 0.0))]
+    task.survey.points = [centre + np.array([x, y, s * x]) for x, y in ((0.0, 0.0145), (0.0, -0.0145), (-0.0145, 0.0))]
     assert not task._fit_face()
     assert task.outcome == "failed" and "fixture face tilted 6.0 deg" in task.reason
 
@@ -206,7 +209,7 @@ def _bare_task(cfg, pc: PegConfig | None = None):
 
 
 class _Descent:
-    """A bare task's guarded descent at the survey speed, the measured tip scripted by the test."""
+    """A guarded descent at the survey speed, the measured tip scripted by the test."""
 
     def __init__(self, cfg) -> None:
         import pinocchio as pin
@@ -214,17 +217,17 @@ class _Descent:
         self.pin = pin
         self.pc = PegConfig()
         self.dt = cfg.loop.period_s
-        self.task = _bare_task(cfg, self.pc)
+        self.guard = GuardedDescent(self.pc, self.dt)
+        self.t = 0.0
         self.v = self.pc.survey_speed_mps
         self.z0 = 0.06
-        self.task.ref = pin.SE3(np.eye(3), np.array([0.45, -0.12, self.z0]))
+        self.ref = pin.SE3(np.eye(3), np.array([0.45, -0.12, self.z0]))
 
     def cycle(self, tip_z: float) -> float:
         """One control cycle with the tip at `tip_z`: how far the reference then leads the tip."""
-        self.task.t += self.dt
-        self.task._tip = self.pin.SE3(np.eye(3), np.array([0.45, -0.12, tip_z]))
-        self.task._descend(self.v)
-        return tip_z - float(self.task.ref.translation[2])
+        self.t += self.dt
+        self.guard.descend(self.v, self.t, self.ref, self.pin.SE3(np.eye(3), np.array([0.45, -0.12, tip_z])))
+        return tip_z - float(self.ref.translation[2])
 
     def onto_face(self) -> tuple[list[float], float]:
         """Descend freely at the commanded speed for 12 cycles: the leads, and where the tip is then."""
@@ -239,14 +242,14 @@ def test_a_guarded_descent_that_stalls_on_a_face_cuts_its_lead(cfg):
     d = _Descent(cfg)
     pc = d.pc
     leads, z_face = d.onto_face()
-    assert max(leads) <= pc.max_lead_m + 1e-12 and not d.task._pressing
+    assert max(leads) <= pc.max_lead_m + 1e-12 and not d.guard.pressing
     leads = [d.cycle(z_face) for _ in range(10)]  # stopped dead on the face
-    assert d.task._pressing
+    assert d.guard.pressing
     assert leads[-1] <= pc.touch_lead_m + 1e-12
     assert leads[-1] < pc.max_lead_m / 2
     for k in range(1, 8):  # it was a stick, not a face: it moves on
         d.cycle(z_face - d.v * d.dt * k)
-    assert not d.task._pressing
+    assert not d.guard.pressing
 
 
 def test_a_tip_bouncing_on_the_face_keeps_the_lead_cut(cfg):
@@ -258,16 +261,16 @@ def test_a_tip_bouncing_on_the_face_keeps_the_lead_cut(cfg):
     _, z_face = d.onto_face()
     for _ in range(5):
         d.cycle(z_face)
-    assert d.task._pressing
+    assert d.guard.pressing
     leads, pressing = [], []
     for h in (3e-5, 6e-5, 8e-5, 6e-5, 3e-5, 1e-5, 0.0, 0.0, 0.0):
         leads.append(d.cycle(z_face + h))
-        pressing.append(d.task._pressing)
+        pressing.append(d.guard.pressing)
     assert all(pressing), pressing
     assert max(leads) <= d.pc.touch_lead_m + 1e-12
     for k in range(1, 10):  # through the face: it moves on
         d.cycle(z_face - d.v * d.dt * k)
-    assert not d.task._pressing
+    assert not d.guard.pressing
 
 
 def test_a_descent_starting_from_rest_keeps_its_full_lead(cfg):
@@ -275,7 +278,7 @@ def test_a_descent_starting_from_rest_keeps_its_full_lead(cfg):
     # anything: the lead stays max_lead_m so the servo can break it free.
     d = _Descent(cfg)
     leads = [d.cycle(d.z0) for _ in range(15)]
-    assert not d.task._pressing
+    assert not d.guard.pressing
     assert leads[-1] == pytest.approx(d.pc.max_lead_m)
 
 
