@@ -20,7 +20,8 @@ from drivers.tm5_registers import N_JOINTS
 from drivers.wacoh import WacohSensor
 from drivers.wacoh_config import WacohConfig
 from sim.cell import make_sim_cell
-from sim.tm5_emulator import KinematicPlant, TM5Emulator
+from sim.kinematic_plant import KinematicPlant
+from sim.tm5_emulator import TM5Emulator
 from sim.wacoh_emulator import WacohEmulator
 from tasks.wipe import WipeTask, load_wipe_config
 

@@ -1,4 +1,4 @@
-"""TM5-700 controller emulator: the controller's Modbus/TCP slave and the robot-side program, driving a plant."""
+"""TM5-700 controller emulator: the Modbus/TCP slave, its cycle and injected faults, running the robot-side program."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Coroutine
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
 import numpy as np
@@ -20,7 +20,7 @@ from pymodbus.server import ModbusBaseServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.errors import ConfigError
-from drivers.interfaces import ArmState, ArmStatus
+from drivers.interfaces import ArmState
 from drivers.tm5_contract import UserAreaLayout
 from drivers.tm5_registers import (
     COIL_PLAY_PAUSE,
@@ -38,17 +38,13 @@ from drivers.tm5_registers import (
     IR_TOOL_POSE,
     USER_AREA_FIRST,
     USER_AREA_LAST,
-    Command,
-    RobotFlags,
     floats_to_regs,
-    int32_to_regs,
     pose_to_regs,
-    regs_to_floats,
-    regs_to_int32,
-    rpy_to_matrix,
     wrap_int32,
 )
+from sim.kinematic_plant import KinematicPlant
 from sim.plant_api import PlantLike
+from sim.tm5_program import RobotProgramState, RobotSideProgram
 
 log = logging.getLogger(__name__)
 
@@ -62,81 +58,7 @@ assert DI_FIRST % 16 == 0 and COIL_PLAY_PAUSE % 16 == 0 and COIL_STOP // 16 == C
 
 
 # ------------------------------------------------------------------------------------------------
-# A trivial plant for the bench and `main.py emulate arm` without MuJoCo
-# ------------------------------------------------------------------------------------------------
-class KinematicPlant:
-    """A documented stand-in satisfying `PlantLike`: every joint tracks its target as a first-order lag
-    (time constant `tau_s`), the "measured torque" is a smooth gravity-like function of q (plus a damping
-    term), and the flange/tool poses come from a toy planar-shoulder kinematic chain.  No contact, no
-    sensor (the wrench is zero).  Good for wire tests and benchmarks, not for physics.  Starts at `HOME`
-    (the cell's default home pose) unless given `q0`."""
-
-    HOME = np.array([0.0, 0.0, math.pi / 2, 0.0, math.pi / 2, 0.0])
-
-    def __init__(self, dt: float = 0.008, q0: np.ndarray | None = None, tau_s: float = 0.05,
-                 tcp_offset_m: float = 0.155) -> None:
-        self.dt = dt
-        self.n_joints = 6
-        self.q = self.HOME.copy() if q0 is None else np.array(q0, dtype=float)
-        self.dq = np.zeros(6)
-        self.target = self.q.copy()
-        self.tau_s = tau_s
-        self.tcp_offset_m = tcp_offset_m
-        self.t = 0.0
-        self.seq = 0
-        self.holding = False
-        self.status = ArmStatus()
-
-    def step(self) -> None:
-        alpha = 1.0 - math.exp(-self.dt / self.tau_s)
-        q_new = self.q + alpha * (self.target - self.q)
-        self.dq = (q_new - self.q) / self.dt
-        self.q = q_new
-        self.t += self.dt
-        self.seq += 1
-
-    def set_target(self, q: np.ndarray) -> None:
-        if not self.holding:  # a protective stop ignores targets until released (like sim.plant.Plant)
-            self.target = np.array(q, dtype=float)
-
-    def hold(self) -> None:
-        self.holding = True
-        self.target = self.q.copy()
-        self.status = ArmStatus(protective_stop=True)
-
-    def release(self) -> None:
-        self.holding = False
-        self.target = self.q.copy()
-        self.status = ArmStatus()
-
-    def torque(self) -> np.ndarray:
-        q = self.q
-        gravity = np.array([0.0, 40.0 * math.cos(q[1]) + 12.0 * math.cos(q[1] + q[2]),
-                            12.0 * math.cos(q[1] + q[2]), 1.5 * math.cos(q[1] + q[2] + q[3]),
-                            0.4 * math.sin(q[4]), 0.0])
-        return gravity + 2.0 * self.dq
-
-    def measured_state(self) -> ArmState:
-        return ArmState(t=self.t, q=self.q.copy(), dq=self.dq.copy(), tau=self.torque(), status=self.status,
-                        seq=self.seq)
-
-    def flange_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        q = self.q
-        reach = 0.329 * math.cos(q[1]) + 0.312 * math.cos(q[1] + q[2])
-        height = 0.146 + 0.329 * math.sin(q[1]) + 0.312 * math.sin(q[1] + q[2])
-        pos = np.array([reach * math.cos(q[0]), reach * math.sin(q[0]), height])
-        return pos, rpy_to_matrix(q[5], q[1] + q[2] + q[3] + q[4], q[0])
-
-    def tool_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        pos, rot = self.flange_pose()
-        return pos + rot @ np.array([0.0, 0.0, self.tcp_offset_m]), rot
-
-    def true_sensor_wrench(self) -> np.ndarray:
-        return np.zeros(6)
-
-
-# ------------------------------------------------------------------------------------------------
-# Faults and the robot-side program state
+# Injected faults
 # ------------------------------------------------------------------------------------------------
 @dataclass
 class EmulatorFaults:
@@ -158,43 +80,6 @@ class EmulatorFaults:
 
     def exception(self, now: float) -> int | None:
         return self.exception_code if now < self.exceptions_until else None
-
-
-# The robot-side program plays the host's targets about this many cycles behind the newest (a jitter
-# buffer).  Its playback clock is elastic: it slows down (by at most RATE_STEP of the host's rate per
-# cycle) when the buffer runs low, so a late host makes the arm ease off instead of overshooting and
-# jumping back, and it catches up at up to MAX_RATE when the buffer is deeper than planned.
-JITTER_DELAY_CYCLES = 2
-RATE_STEP = 0.25
-MAX_RATE = 1.25
-
-
-@dataclass
-class RobotProgramState:
-    """What the robot-side program (docs/robot-side-program.md) remembers between its cycles."""
-
-    counter: int = 0  # robot heartbeat, +1 per cycle (INT32, wraps)
-    last_host_seq: int = 0  # the host registers start at 0: nothing to do until the host writes
-    stalled_cycles: int = 0
-    executing: bool = False
-    held: bool = False  # latched protective hold (host STOP, bad targets, pause)
-    watchdog: bool = False  # latched: host heartbeat stalled while tracking
-    # Jitter buffer: targets received this tracking session, by host sequence number; the (fractional)
-    # sequence position the servo plays, and how many sequence numbers it advances per cycle.
-    received: dict[int, np.ndarray] = field(default_factory=dict)
-    play_seq: float | None = None
-    rate: float = 1.0
-
-    @property
-    def flags(self) -> RobotFlags:
-        flags = RobotFlags(0)
-        if self.watchdog:
-            flags |= RobotFlags.WATCHDOG
-        if self.executing:
-            flags |= RobotFlags.EXECUTING
-        if self.held:
-            flags |= RobotFlags.HELD
-        return flags
 
 
 class _Phase(enum.Enum):
@@ -228,9 +113,7 @@ class TM5Emulator:
         self.layout.validate("layout")
         self.host = host
         self.time_scale = time_scale
-        self.watchdog_cycles = watchdog_cycles
         self.faults = EmulatorFaults()
-        self.program = RobotProgramState()
         self.project_running = True
         self.paused = False
         self.cycles = 0
@@ -239,6 +122,7 @@ class TM5Emulator:
         self._ir = [0] * IR_COUNT
         self._di = [False] * DI_COUNT
         self._hr = [0] * _HR_COUNT
+        self._robot = RobotSideProgram(plant, self.layout, self._hr, watchdog_cycles)
         self._history: OrderedDict[int, ArmState] = OrderedDict()
         self._history_len = history
         self._history_lock = threading.Lock()
@@ -337,6 +221,11 @@ class TM5Emulator:
 
     # ----------------------------------------------------------------------------- observation
     @property
+    def program(self) -> RobotProgramState:
+        """What the robot-side program remembers between its cycles."""
+        return self._robot.state
+
+    @property
     def robot_counter(self) -> int:
         return self.program.counter
 
@@ -347,10 +236,7 @@ class TM5Emulator:
 
     def host_block(self) -> tuple[int, np.ndarray, int]:
         """(host seq, targets [deg], command) as currently in the registers."""
-        lay = self.layout
-        seq = regs_to_int32(self._hr_slice(lay.host_seq, 2))
-        targets = regs_to_floats(self._hr_slice(lay.targets, 12))
-        return seq, targets, self._hr_slice(lay.command, 1)[0]
+        return self._robot.host_block()
 
     # ----------------------------------------------------------------------------- loop thread
     def _thread_main(self) -> None:
@@ -471,108 +357,13 @@ class TM5Emulator:
         frozen = self.faults.frozen(now)
         program_runs = self.project_running and not self.paused and not frozen
         if program_runs:
-            self._robot_program_inputs()
+            self._robot.act_on_host_block()
         self.plant.step()
         self.cycles += 1
         if not (frozen and self.faults.freeze_controller):
             self._publish_controller()
         if program_runs:
             self._publish_user_area()
-
-    def _robot_program_inputs(self) -> None:
-        """The robot-side program's input half: heartbeat, command word, targets, watchdog."""
-        prog, lay = self.program, self.layout
-        seq = regs_to_int32(self._hr_slice(lay.host_seq, 2))
-        command = self._hr_slice(lay.command, 1)[0]
-        advanced = seq != prog.last_host_seq
-        if advanced:
-            prog.last_host_seq, prog.stalled_cycles = seq, 0
-        else:
-            prog.stalled_cycles += 1
-
-        if command == Command.STOP:
-            self._hold("host command STOP", asked=True)
-        elif command == Command.TRACK:
-            if prog.held or prog.watchdog:
-                return  # latched: targets are ignored until the host acknowledges with IDLE
-            if advanced:
-                targets = np.radians(regs_to_floats(self._hr_slice(lay.targets, 12)))
-                if not np.all(np.isfinite(targets)):
-                    self._hold(f"non-finite joint targets {targets!r}")
-                    return
-                if not prog.executing:
-                    prog.received.clear()
-                    prog.play_seq = float(seq - JITTER_DELAY_CYCLES)
-                    prog.rate = 1.0
-                prog.received[seq] = targets
-                prog.executing = True
-            elif prog.executing and prog.stalled_cycles >= self.watchdog_cycles:
-                self._hold(f"host heartbeat stalled for {prog.stalled_cycles} cycles", watchdog=True)
-                return
-            if prog.executing:
-                self._play_next()
-        elif command == Command.IDLE:
-            prog.executing = False
-            if advanced and (prog.held or prog.watchdog or self.plant.measured_state().status.protective_stop):
-                self._release()
-        else:
-            self._hold(f"unknown host command {command}")
-
-    def _play_next(self) -> None:
-        """Hand the servo one target per cycle from the jitter buffer, on an elastic clock: the
-        playback rate (host sequence numbers per cycle) moves by at most RATE_STEP per cycle, never
-        faster than it can still brake to a stop at the newest stored target (half a cycle of
-        tolerance), and up to MAX_RATE while the buffer is deeper than planned.  A skipped sequence is
-        interpolated; a host that stops sending makes the arm ease to a stop at its last target (the
-        watchdog latches a hold if it stays silent)."""
-        prog = self.program
-        assert prog.play_seq is not None
-        if not prog.received:
-            return
-        newest = max(prog.received)
-        ahead = newest - prog.play_seq
-        # Brake-able rate r: r + (r - s) + (r - 2s) + ... ~ r^2 / (2 s) + r / 2 <= ahead + 0.5.
-        s, d = RATE_STEP, max(ahead + 0.5, 0.0)
-        brake = math.sqrt(2.0 * s * d + s * s / 4.0) - s / 2.0
-        want = MAX_RATE if ahead > JITTER_DELAY_CYCLES + 0.5 else 1.0
-        rate = max(min(want, prog.rate + s), prog.rate - s)  # ease towards the wanted rate
-        prog.rate = max(0.0, min(rate, brake))  # but never past what still stops at the newest target
-        prog.play_seq = min(prog.play_seq + prog.rate, float(newest))
-        pos = prog.play_seq
-        known = sorted(prog.received)
-        below = [k for k in known if k <= pos]
-        above = [k for k in known if k >= pos]
-        if not below:
-            return  # nothing to play yet (the buffer starts ahead of the arm)
-        a = below[-1]
-        b = above[0] if above else a
-        target = prog.received[a] if b == a else (
-            prog.received[a] + (prog.received[b] - prog.received[a]) * (pos - a) / (b - a))
-        for k in [k for k in known if k < a - 4]:
-            del prog.received[k]
-        self.plant.set_target(target)
-
-    def _hold(self, why: str, *, watchdog: bool = False, asked: bool = False) -> None:
-        prog = self.program
-        if not (prog.held or prog.watchdog):
-            # A hold the host did not ask for is news to it (the host sees only the protective-stop flag).
-            log.log(logging.INFO if asked else logging.WARNING, "TM5 emulator robot-side program: hold (%s)", why)
-            self.plant.hold()
-        prog.executing = False
-        if watchdog:
-            prog.watchdog = True
-        else:
-            prog.held = True
-
-    def _release(self) -> None:
-        """Host acknowledged with IDLE: clear the latches and stand still at the current position."""
-        release = getattr(self.plant, "release", None)
-        if callable(release):
-            release()  # a plant whose hold() latches (sim.plant.Plant, KinematicPlant) needs releasing
-        else:
-            self.plant.set_target(self.plant.measured_state().q)
-        self.program.held = self.program.watchdog = False
-        log.info("TM5 emulator robot-side program: released by host IDLE")
 
     def _publish_controller(self) -> None:
         """The controller's own registers: joint angles, poses, status inputs."""
@@ -592,28 +383,11 @@ class TM5Emulator:
         di[DI_ESTOP - DI_FIRST] = st.status.estop
 
     def _publish_user_area(self) -> None:
-        """The robot-side program's output half: counter, torque (mN·m), speed (deg/s), status, echo."""
-        st = self.plant.measured_state()
-        prog, lay = self.program, self.layout
-        prog.counter = wrap_int32(prog.counter + 1)
-        flags = prog.flags | (RobotFlags.HELD if st.status.protective_stop else RobotFlags(0))
-        self._hr_put(lay.robot_counter, int32_to_regs(prog.counter))
-        self._hr_put(lay.torque, floats_to_regs(np.asarray(st.tau) * 1000.0, allow_nonfinite=True))
-        self._hr_put(lay.speed, floats_to_regs(np.degrees(st.dq), allow_nonfinite=True))
-        self._hr_put(lay.robot_status, [int(flags)])
-        self._hr_put(lay.host_seq_echo, int32_to_regs(prog.last_host_seq))
+        st = self._robot.publish()
         with self._history_lock:
-            self._history[prog.counter] = st
+            self._history[self.program.counter] = st
             while len(self._history) > self._history_len:
                 self._history.popitem(last=False)
-
-    def _hr_slice(self, address: int, count: int) -> list[int]:
-        i = address - USER_AREA_FIRST
-        return self._hr[i:i + count]
-
-    def _hr_put(self, address: int, regs: list[int]) -> None:
-        i = address - USER_AREA_FIRST
-        self._hr[i:i + len(regs)] = regs
 
     # ----------------------------------------------------------------------------- Modbus data model
     def _make_device(self) -> SimDevice:
@@ -662,12 +436,12 @@ class TM5Emulator:
                 continue
             if coil == COIL_STOP:
                 log.info("TM5 emulator: stop coil %d: project stopped", COIL_STOP)
-                self._hold("project stopped")
+                self._robot.hold("project stopped")
                 self.project_running = False
             elif coil == COIL_PLAY_PAUSE:
                 self.paused = not self.paused
                 if self.paused:
-                    self._hold("project paused")
+                    self._robot.hold("project paused")
                 log.info("TM5 emulator: play/pause coil %d: paused=%s", COIL_PLAY_PAUSE, self.paused)
 
 

@@ -407,7 +407,7 @@ def test_modbus_exception_reply_is_protocol_error(arm: TM5ModbusArm, emulator: T
 @pytest.mark.timeout(20)
 def test_robot_watchdog_holds_plant_when_host_goes_quiet(arm: TM5ModbusArm, emulator: TM5Emulator,
                                                          plant: FakePlant, caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.INFO, logger="sim.tm5_emulator")
+    caplog.set_level(logging.INFO, logger="sim.tm5_program")
     arm.arm()
     q = arm.read_state().q
     for i in range(10):
