@@ -12,6 +12,9 @@ from cell.robot import RobotModel, load_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 
+# The drivers' fixtures (emulator, connected device), shared by each driver's test modules.
+pytest_plugins = ["tests.tm5_fixtures", "tests.wacoh_fixtures"]
+
 
 @pytest.fixture(autouse=True)
 def _isolated_runs(tmp_path, monkeypatch):

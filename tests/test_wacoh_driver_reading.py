@@ -1,0 +1,306 @@
+"""The real `WacohSensor` reading from the WACOH emulator: polling, tare, streaming, line faults, hygiene."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from bench.timing import bench_serial
+from drivers.errors import LinkLostError
+from drivers.wacoh import WacohSensor
+from drivers.wacoh_codec import RAW_ZERO
+from drivers.wacoh_config import WacohConfig
+from sim.wacoh_emulator import FaultConfig, WacohEmulator
+from tests.wacoh_fixtures import (
+    BIG_OFFSET,
+    SLACK_TIMEOUT_S,
+    EmulatorFactory,
+    S,
+    Source,
+    close_to,
+    connect,
+    random_wrench,
+)
+
+pytestmark = pytest.mark.timeout(25)
+
+
+# ------------------------------------------------------------------------------------ polling
+def test_polling_matches_the_source_within_quantisation(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor]
+) -> None:
+    source = Source()
+    emulator = make_emulator(source, offset_lsb=np.zeros(6), noise=0.0)
+    sensor = connect(sensors, emulator, timeout_s=SLACK_TIMEOUT_S)
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        source.value = random_wrench(rng)
+        w = sensor.read()
+        assert w.valid
+        assert close_to(w.vector, source.value, 0.5), (w.vector, source.value)
+    assert sensor.records_ok == 200 and sensor.records_rejected == 0 and sensor.timeouts == 0
+
+
+@pytest.mark.parametrize("mode", ["poll", "stream"])
+def test_software_tare_removes_a_655_lsb_offset(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor], mode: str
+) -> None:
+    source = Source()
+    emulator = make_emulator(source, offset_lsb=BIG_OFFSET, noise=0.0)
+    sensor = connect(sensors, emulator, tare="software", mode=mode, timeout_s=SLACK_TIMEOUT_S)
+    before = sensor.read()
+    assert close_to(before.vector, BIG_OFFSET / S, 0.5)  # untared: the offset shows (up to 20 N)
+    sensor.tare(20)
+    assert np.allclose(sensor.zero, np.rint(RAW_ZERO + BIG_OFFSET))
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        source.value = random_wrench(rng)
+        time.sleep(0.003 if mode == "stream" else 0.0)  # let a record with the new value arrive
+        assert close_to(sensor.read().vector, source.value, 1.0)
+
+
+def test_sensor_tare_sends_o_three_times_and_removes_the_offset(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor]
+) -> None:
+    source = Source()
+    emulator = make_emulator(source, offset_lsb=BIG_OFFSET, noise=0.0)
+    sensor = connect(sensors, emulator, tare="sensor", timeout_s=SLACK_TIMEOUT_S)
+    assert not close_to(sensor.read().vector, np.zeros(6), 100)
+    sensor.tare()
+    assert emulator.commands.get("O") == 3 and emulator.zero_events == 1
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        source.value = random_wrench(rng)
+        assert close_to(sensor.read().vector, source.value, 1.0)
+
+
+def test_tare_with_noise_reads_zero_within_a_few_lsb(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor]
+) -> None:
+    emulator = make_emulator(Source(), noise=0.5, seed=11)  # random offsets within +-655 LSB
+    assert np.all(np.abs(emulator.offset_lsb) <= 655)
+    sensor = connect(sensors, emulator, timeout_s=SLACK_TIMEOUT_S)
+    sensor.tare(50)
+    readings = np.array([sensor.read().vector for _ in range(50)])
+    assert np.all(np.abs(readings) <= 3.0 / S)  # 0.5 LSB noise: 6 sigma of the reading + tare error
+
+
+def test_saturated_channel_reads_nan(make_emulator: EmulatorFactory, sensors: list[WacohSensor]) -> None:
+    emulator = make_emulator(Source(np.array([0, 0, 400.0, 0, 0, 0])), offset_lsb=np.zeros(6), noise=0.0)
+    sensor = connect(sensors, emulator, timeout_s=SLACK_TIMEOUT_S)
+    w = sensor.read()
+    assert np.isnan(w.force[2])
+    assert np.all(np.isfinite(np.delete(w.vector, 2)))
+    assert sensor.records_saturated == 1
+
+
+# ------------------------------------------------------------------------------------ streaming
+def test_streaming_keeps_the_latest_record(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor]
+) -> None:
+    source = Source(fresh_each_call=True)
+    emulator = make_emulator(source, offset_lsb=np.zeros(6), noise=0.0)
+    sensor = connect(sensors, emulator, mode="stream", timeout_s=SLACK_TIMEOUT_S)
+    for _ in range(60):
+        time.sleep(0.02)  # much slower than the 1 kHz stream: a backlog of ~20 records builds between reads
+        n_produced = len(source.produced)
+        w = sensor.read()
+        assert w.valid, sensor.counters()
+        distances = [np.max(np.abs(w.vector - p) * S) for p in source.produced]
+        index = int(np.argmin(distances))
+        assert distances[index] <= 0.5 + 1e-6  # the value of one real record ...
+        # ... and one of the newest, not the oldest of the backlog (slack: pty and thread scheduling)
+        assert index >= n_produced - 8, (index, n_produced)
+    assert emulator.streaming and emulator.commands.get("S") == 1
+    sensor.disconnect()
+    assert not emulator.streaming
+
+
+# ------------------------------------------------------------------------------------ faults
+FAULTS = FaultConfig(split_prob=0.3, split_max_delay_s=0.001, garbage_prob=0.2, drop_crlf_prob=0.1,
+                     drop_reply_prob=0.1)
+
+
+def test_polling_under_faults_never_accepts_a_wrong_value(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor]
+) -> None:
+    source = Source()
+    emulator = make_emulator(source, offset_lsb=BIG_OFFSET, noise=0.0, seed=5, faults=FAULTS)
+    sensor = connect(sensors, emulator, timeout_s=0.03, max_consecutive_failures=50)
+    sensor.tare(20)
+    sens = sensor.sensitivities.as_array()
+    rng = np.random.default_rng(9)
+    valid = 0
+    durations = []
+    for _ in range(300):
+        source.value = random_wrench(rng)  # a new value every read: a stale reply would be caught
+        t0 = time.monotonic()
+        w = sensor.read()
+        durations.append(time.monotonic() - t0)
+        if w.valid:
+            valid += 1
+            assert close_to(w.vector, source.value, 1.0, sens), (w.vector, source.value)
+        else:
+            assert np.all(np.isnan(w.vector))  # invalid is all NaN, never a partial or 0
+    # The deadline holds (timeout + one 5 ms read slice), and no read hangs even on a busy machine.
+    assert np.percentile(durations, 95) < 0.03 + 0.01
+    assert max(durations) < 0.03 + 0.25
+    c = sensor.counters()
+    assert valid >= 180  # ~0.9 * 0.9 * (1 - garbage without LF) of 300
+    assert c["timeouts"] > 0 and c["records_rejected"] > 0
+
+
+def test_streaming_under_faults_never_accepts_a_wrong_value(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor]
+) -> None:
+    source = Source(fresh_each_call=True)
+    emulator = make_emulator(source, offset_lsb=np.zeros(6), noise=0.0, seed=6, faults=FAULTS)
+    sensor = connect(sensors, emulator, mode="stream", timeout_s=0.03, max_consecutive_failures=50)
+    sens = sensor.sensitivities.as_array()
+    valid = 0
+    for _ in range(200):
+        time.sleep(0.002)
+        w = sensor.read()
+        if not w.valid:
+            assert np.all(np.isnan(w.vector))
+            continue
+        valid += 1
+        expected = np.array(source.produced) * S / sens  # every value the emulator put in a record
+        assert np.min(np.max(np.abs(expected - w.vector) * sens, axis=1)) <= 0.5 + 1e-6
+    assert valid >= 150
+    assert sensor.records_rejected > 0
+
+
+def test_dropped_replies_give_nan_then_link_lost(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor]
+) -> None:
+    emulator = make_emulator(Source())
+    sensor = connect(sensors, emulator, timeout_s=0.02, max_consecutive_failures=4)
+    assert sensor.read().valid
+    emulator.faults.drop_reply_prob = 1.0
+    for _ in range(3):
+        assert np.all(np.isnan(sensor.read().vector))
+    with pytest.raises(LinkLostError, match="no valid record in 4 consecutive reads"):
+        sensor.read()
+    assert sensor.timeouts == 4
+    emulator.faults.drop_reply_prob = 0.0
+    assert sensor.read().valid  # the link recovers without reconnecting
+
+
+def test_a_write_delayed_past_the_reply_timeout_is_not_a_lost_link(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """pyserial checks its write deadline after the bytes went out: a thread descheduled longer than
+    the 5 ms reply timeout around a write must not turn a sent command into a lost link."""
+    import types
+
+    import serial.serialposix as posix
+
+    stalls = []
+
+    def descheduled_write(fd: int, data: bytes) -> int:
+        n = os.write(fd, data)
+        stalls.append(n)
+        time.sleep(0.02)  # the OS runs something else for 20 ms right after the bytes left
+        return n
+
+    emulator = make_emulator(Source(), offset_lsb=np.zeros(6), noise=0.0)
+    # Only the driver's port sees the stall (the emulator writes with the real os.write).
+    driver_os = types.SimpleNamespace(**{k: getattr(os, k) for k in dir(os) if not k.startswith("__")})
+    driver_os.write = descheduled_write
+    monkeypatch.setattr(posix, "os", driver_os)
+    sensor = connect(sensors, emulator, timeout_s=0.005)
+    assert sensor.sensitivities_source == "sensor"
+    for _ in range(5):
+        assert sensor.read().valid  # the reply came while the thread was away
+    assert len(stalls) >= 6, "the stall was not exercised"
+    assert sensor.connected
+
+
+@pytest.mark.parametrize("mode", ["poll", "stream"])
+def test_closed_emulator_raises_link_lost_instead_of_hanging(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor], mode: str
+) -> None:
+    emulator = make_emulator(Source())
+    sensor = connect(sensors, emulator, mode=mode, timeout_s=0.05)
+    assert sensor.read().valid
+    emulator.stop()
+    t0 = time.monotonic()
+    with pytest.raises(LinkLostError):
+        for _ in range(sensor.config.max_consecutive_failures):
+            assert not sensor.read().valid  # NaN at most, until the failure limit
+    assert time.monotonic() - t0 < 2.0
+    sensor.disconnect()  # closing a dead link does not raise
+    assert not sensor.connected
+
+
+@pytest.mark.parametrize("delay_prob", [1.0, 0.4])
+def test_a_late_reply_is_never_returned_as_the_next_reading(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor], delay_prob: float
+) -> None:
+    """Replies 12 ms late against a 5 ms timeout: each arrives while a later request waits.  Taken as
+    that request's answer, 13 of 60 reads returned the previous record; the record number says whose
+    reply it is."""
+    source = Source()
+    emulator = make_emulator(source, offset_lsb=np.zeros(6), noise=0.0, seed=3,
+                             faults=FaultConfig(reply_delay_s=0.012, reply_delay_prob=delay_prob))
+    sensor = connect(sensors, emulator, timeout_s=0.005, max_consecutive_failures=10_000)
+    sens = sensor.sensitivities.as_array()
+    rng = np.random.default_rng(12)
+    valid = 0
+    for _ in range(120):
+        source.value = random_wrench(rng)  # a new value every read: a stale reply would be caught
+        w = sensor.read()
+        if w.valid:
+            valid += 1
+            assert close_to(w.vector, source.value, 0.5, sens), "a stale record was returned as new"
+        else:
+            assert np.all(np.isnan(w.vector))  # the missing reading
+        if delay_prob == 1.0 and _ % 3 == 0:
+            time.sleep(0.004)  # vary the phase, so late replies land inside later reads' windows
+    assert emulator.replies_delayed > 0
+    assert sensor.records_stale > 0  # late replies did arrive during later reads, and were discarded
+    if delay_prob == 1.0:
+        assert valid == 0  # every reply is later than its read's deadline
+    else:
+        assert valid >= 20, sensor.counters()
+
+
+def test_a_missing_reply_costs_the_configured_timeout(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor]
+) -> None:
+    """The read loop restarted pyserial's per-read timeout: 5 ms cost 10.3 ms."""
+    emulator = make_emulator(Source())
+    timeout = 0.005
+    sensor = connect(sensors, emulator, timeout_s=timeout, max_consecutive_failures=10_000)
+    emulator.faults.drop_reply_prob = 1.0
+    durations = []
+    for _ in range(15):
+        t0 = time.monotonic()
+        w = sensor.read()
+        durations.append(time.monotonic() - t0)
+        assert not w.valid
+    median = float(np.median(durations))
+    assert timeout <= median <= timeout + 0.003, durations
+
+
+# ------------------------------------------------------------------------------------ hygiene, speed
+def test_no_threads_or_file_descriptors_leak(make_emulator: EmulatorFactory) -> None:
+    threads0, fds0 = threading.active_count(), len(os.listdir("/proc/self/fd"))
+    for mode in ("poll", "stream"):
+        with WacohEmulator(Source()) as emulator:
+            sensor = WacohSensor(WacohConfig(port=emulator.tty_path, mode=mode, timeout_s=SLACK_TIMEOUT_S))
+            with sensor:
+                sensor.tare(5)
+                assert sensor.read().valid
+    assert threading.active_count() == threads0
+    assert len(os.listdir("/proc/self/fd")) == fds0
+
+
+def test_bench_serial_reports_latency() -> None:
+    result = bench_serial(100)
+    assert result["n"] == 100
