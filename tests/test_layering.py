@@ -30,7 +30,6 @@ OVER_LIMIT_FOR_NOW = {
     "tasks/lab.py",
     "cell/excitation.py",
     "cell/dataset.py",
-    "sim/tm5_emulator.py",
 }
 
 
