@@ -32,40 +32,41 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_collect(args: argparse.Namespace) -> int:
-    from tasks import lab
+    from tasks.lab_collect import collect
+    from tasks.lab_robot import lab_robot
 
     cfg = load_cell_config(args)
-    robot = lab.lab_robot(cfg)
+    robot = lab_robot(cfg)
     kind = cell_kind(cfg, args.cell)
 
     def opener() -> Any:
         return open_cell(cfg, kind, robot, args.seed, "free")
 
-    out = lab.collect(cfg, opener, Path(args.out), samples=args.samples, family=args.family,
-                      fourier_share=args.fourier_share, test_trajectories=args.test_trajectories,
-                      test_repeats=args.test_repeats, test_moves=args.test_moves,
-                      excitation=args.excitation, seed=args.plan_seed, robot=args.robot)
+    out = collect(cfg, opener, Path(args.out), samples=args.samples, family=args.family,
+                  fourier_share=args.fourier_share, test_trajectories=args.test_trajectories,
+                  test_repeats=args.test_repeats, test_moves=args.test_moves,
+                  excitation=args.excitation, seed=args.plan_seed, robot=args.robot)
     emit(out, args.json)
     return 0
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from tasks import lab
+    from tasks.lab_train import train
 
-    out = lab.train(load_cell_config(args), Path(args.data), Path(args.out), kind=args.model, samples=args.samples,
-                    window=args.window, grouping=args.grouping, derivatives=args.derivatives,
-                    nthread=args.nthread, seed=args.seed or 0, robot=args.robot)
+    out = train(load_cell_config(args), Path(args.data), Path(args.out), kind=args.model, samples=args.samples,
+                window=args.window, grouping=args.grouping, derivatives=args.derivatives,
+                nthread=args.nthread, seed=args.seed or 0, robot=args.robot)
     emit(out, args.json)
     return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from tasks import lab
+    from tasks.lab_evaluate import DEFAULT_CURVE, evaluate
 
-    curve = None if args.no_curve else args.curve if args.curve else lab.DEFAULT_CURVE
-    out = lab.evaluate(load_cell_config(args), Path(args.data), Path(args.out), train_samples=args.train_samples,
-                       large_samples=args.large_samples, curve=curve, nthread=args.nthread, seed=args.seed or 0,
-                       max_trees=args.max_trees, robot=args.robot, lofo=args.lofo)
+    curve = None if args.no_curve else args.curve if args.curve else DEFAULT_CURVE
+    out = evaluate(load_cell_config(args), Path(args.data), Path(args.out), train_samples=args.train_samples,
+                   large_samples=args.large_samples, curve=curve, nthread=args.nthread, seed=args.seed or 0,
+                   max_trees=args.max_trees, robot=args.robot, lofo=args.lofo)
     emit(out, args.json)
     return 0
 

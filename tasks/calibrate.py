@@ -422,7 +422,8 @@ def prepare(
 
     CLI: main.py prepare [--tool wipe|peg] [--cell sim] [--samples 40000] [--force] [--json]
     """
-    from tasks import lab  # the model lab's command bodies
+    from tasks.lab_collect import collect  # the model lab's command bodies
+    from tasks.lab_train import train
 
     t0 = time.perf_counter()
     vs = cfg.virtual_sensor
@@ -436,8 +437,8 @@ def prepare(
     if force or stale or not manifest.exists():
         log.info("prepare %s: collecting %d samples with the %s tool into %s", tool, samples, tool, data_dir)
         sweeps = PREPARE_SWEEP_SHARE if working_posture is not None else 0.0
-        res = lab.collect(cfg, collect_opener, data_dir, samples=samples, test_trajectories=0, seed=seed,
-                          slow_share=PREPARE_SLOW_SHARE, sweep_share=sweeps, sweep_centre=working_posture)
+        res = collect(cfg, collect_opener, data_dir, samples=samples, test_trajectories=0, seed=seed,
+                      slow_share=PREPARE_SLOW_SHARE, sweep_share=sweeps, sweep_centre=working_posture)
         steps["collect"] = {"done": True, "train_samples": res["train_samples"], "wall_s": round(res["wall_s"], 1)}
     else:
         steps["collect"] = {"done": False, "reason": f"{manifest} exists"}
@@ -457,7 +458,7 @@ def prepare(
         t1 = time.perf_counter()
         # One XGBoost thread: on a shared two-core machine two threads spin-wait for each other and
         # a seconds-long fit takes a minute.
-        res = lab.train(cfg, manifest, model_dir, kind="H1", derivatives="causal", nthread=1, seed=seed)
+        res = train(cfg, manifest, model_dir, kind="H1", derivatives="causal", nthread=1, seed=seed)
         steps["train"] = {"done": True, "samples": res["samples"], "wall_s": round(time.perf_counter() - t1, 1)}
     why = "forced" if force else calibration_matches(cfg, robot, tool, model_dir, cal_dir)
     if steps["train"]["done"] or why:

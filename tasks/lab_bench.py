@@ -17,7 +17,8 @@ from cell.dynamics.fastpredict import FastPredictor
 from cell.dynamics.learned import Forest, LearnedModel, physics_part
 from cell.robot import RobotModel
 from drivers.errors import ConfigError
-from tasks.lab import CELL_ROBOT, TrainOptions, fit_model, lab_robot, lab_settings, load_samples
+from tasks.lab_robot import CELL_ROBOT, lab_robot, lab_settings
+from tasks.lab_train import TrainOptions, fit_model, load_samples
 
 
 def bench_model(

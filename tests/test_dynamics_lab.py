@@ -11,8 +11,11 @@ import yaml
 from cell.dataset import load_split
 from cell.dynamics.artefact import load_model
 from cell.dynamics.learned import LearnedModel
-from tasks.lab import collect, evaluate, lab_robot, train
 from tasks.lab_bench import bench_model
+from tasks.lab_collect import collect
+from tasks.lab_evaluate import evaluate
+from tasks.lab_robot import lab_robot
+from tasks.lab_train import train
 
 
 @pytest.fixture(scope="module")

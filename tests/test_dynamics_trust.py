@@ -17,7 +17,7 @@ from cell.dynamics.learned import LearnedModel, XGBParams
 from cell.dynamics.uncertainty import SPEED_EDGES, Coverage, CoverageConfig
 from cell.observer import KalmanObserver
 from drivers.interfaces import ArmState
-from tasks.lab import TrainOptions, fit_model
+from tasks.lab_train import TrainOptions, fit_model
 from tests.test_dynamics_learned import fit_h1, motion
 
 # One thread: on a 2-core machine busy with another job, XGBoost's two threads spin against it (30 s vs 0.2 s).

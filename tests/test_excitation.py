@@ -201,7 +201,7 @@ def test_playback_task_moves_to_start_plays_every_sample_and_labels_rows(robot, 
 
 
 def test_training_plan_adds_sweeps_around_the_given_posture(robot, cfg):
-    from tasks.lab import training_plan
+    from tasks.lab_collect import training_plan
 
     centre = np.array(cfg.robot.home, float) + np.array([0.3, 0.2, -0.3, 0.1, 0.0, 0.2])
     plan = training_plan(robot, cfg, SMALL, DT, 3000, "fourier", sweep_share=0.5, sweep_centre=centre)
@@ -217,7 +217,7 @@ def test_training_plan_adds_sweeps_around_the_given_posture(robot, cfg):
 @pytest.mark.parametrize("tool", ["wipe", "peg"])
 def test_each_tools_working_posture_is_free_and_above_its_task_start(cfg, tool):
     from app.tasks_registry import SWEEP_LIFT_M, TASK_TOOLS, build_task, robot_for, working_posture
-    from tasks.lab import lab_robot
+    from tasks.lab_robot import lab_robot
 
     robot = robot_for(cfg, tool)
     q = working_posture(cfg, tool, robot)

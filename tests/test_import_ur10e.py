@@ -17,7 +17,7 @@ from cell.robots import load_robot_spec
 from drivers.errors import ConfigError, DataError
 from main import main
 from tasks import import_ur10e as imp
-from tasks.lab import evaluate
+from tasks.lab_evaluate import evaluate
 
 GAINS = np.asarray(load_robot_spec("ur10e").torque_constants)
 

@@ -12,7 +12,8 @@ import yaml
 from cell.robots import ROBOTS_DIR, available_robots, load_robot_spec, robot_model
 from drivers.errors import ConfigError
 from main import main
-from tasks.lab import collect, lab_robot
+from tasks.lab_collect import collect
+from tasks.lab_robot import lab_robot
 
 
 def test_both_robots_load_from_their_folders():

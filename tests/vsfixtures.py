@@ -48,11 +48,11 @@ def artefacts() -> dict[str, Any]:
     cfg = small_config(root)
     robot = robot_for(cfg, "wipe")
     opener, hand = calibration_cells(cfg, "sim", "wipe", robot, None)
-    from tasks import lab
+    from tasks.lab_collect import collect
 
     # A small collection through the lab (its own excitation config keeps the planning short).
     data_dir = cfg.virtual_sensor.path("data", "wipe")
-    lab.collect(cfg, opener, data_dir, samples=12_000, test_trajectories=0, excitation=str(ex))
+    collect(cfg, opener, data_dir, samples=12_000, test_trajectories=0, excitation=str(ex))
     summary = prepare(cfg, "wipe", robot, opener, opener, hand, samples=12_000)
     _CACHE.update(root=root, cfg=cfg, prepare=summary, robot=robot)
     return _CACHE
