@@ -17,7 +17,7 @@ excitation: careful task motion (the peg's slides and rotations, 0.005-0.05 rad/
 friction's low-speed regime, which the fast families only cross at their turning points.  Given the
 tool's working posture (the CLI gives its task's start, lifted clear of the work surface), it also
 gets `PREPARE_SWEEP_SHARE` x `samples` of slow constant-speed sweeps around it
-(`cell.excitation.sweep_excitation`): the task's postures at the task's steady speeds.
+(`cell.excitation.sweep.sweep_excitation`): the task's postures at the task's steady speeds.
 """
 
 from __future__ import annotations

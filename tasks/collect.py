@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from cell.excitation import Plan
+from cell.excitation.plan import Plan
 from cell.loop import Command, Observation
 from cell.robot import RobotModel
 from cell.trajectory import JointMove

@@ -23,18 +23,12 @@ from tqdm import tqdm
 
 from cell.config import CellConfig
 from cell.configio import to_plain
-from cell.excitation import (
-    ExcitationConfig,
-    Plan,
-    Segment,
-    fourier_excitation,
-    join_plans,
-    paper_chain,
-    random_moves,
-    read_excitation_config,
-    sweep_excitation,
-    transfer,
-)
+from cell.excitation.chain import paper_chain
+from cell.excitation.config import ExcitationConfig, read_excitation_config
+from cell.excitation.fourier import fourier_excitation
+from cell.excitation.moves import join_plans, random_moves, transfer
+from cell.excitation.plan import Plan, Segment
+from cell.excitation.sweep import sweep_excitation
 from cell.loop import ControlLoop
 from cell.recorder import Recorder, new_run_dir, read_log
 from cell.robot import RobotModel
@@ -149,7 +143,7 @@ def training_plan(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: 
     `samples`: the joint speeds of careful task motion (0.005-0.05 rad/s), where the friction is in
     its Stribeck regime and the fast families only pass through at their turning points.
     `sweep_share` > 0 adds about `sweep_share * samples` samples of slow constant-speed sweeps around
-    `sweep_centre`, the tool's working posture (`cell.excitation.sweep_excitation`)."""
+    `sweep_centre`, the tool's working posture (`cell.excitation.sweep.sweep_excitation`)."""
     if not 0 < fourier_share < 1:
         raise ConfigError(f"--fourier-share {fourier_share}: must lie in (0, 1)")
     if not 0 <= slow_share < 1:

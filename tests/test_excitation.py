@@ -10,22 +10,12 @@ import pytest
 import yaml
 
 from cell.configio import load_dataclass
-from cell.excitation import (
-    CollisionChecker,
-    ExcitationConfig,
-    FourierConfig,
-    Workspace,
-    check_plan,
-    digitised_configurations,
-    eulerian_chain,
-    fourier_excitation,
-    free_configurations,
-    paper_chain,
-    path_clear,
-    random_moves,
-    sweep_excitation,
-    transfer,
-)
+from cell.excitation.chain import digitised_configurations, eulerian_chain, free_configurations, paper_chain
+from cell.excitation.config import ExcitationConfig, FourierConfig
+from cell.excitation.fourier import fourier_excitation
+from cell.excitation.limits import CollisionChecker, Workspace, check_plan
+from cell.excitation.moves import path_clear, random_moves, transfer
+from cell.excitation.sweep import sweep_excitation
 from cell.loop import Observation
 from drivers.errors import ConfigError
 from drivers.interfaces import ArmState, Wrench
