@@ -1,4 +1,4 @@
-"""Motion datasets (Parquet + YAML manifest): strict validation and zero-phase / causal derivative estimation.
+"""Motion datasets (Parquet + YAML manifest): the manifest, and trajectories read with strict validation.
 
 Format (documented in docs/dataset.md):
 
@@ -8,14 +8,12 @@ Format (documented in docs/dataset.md):
   datasets as they are;
 * a YAML manifest naming which files are for training, for testing and (optionally) carry a payload.
 
-Derivatives: `zero_phase` (Butterworth `filtfilt`, for offline training and evaluation) or `causal`
-(`CausalDerivatives`, the very class the controller runs once per sample).
+Derivatives: cell/derivatives.py; trajectories stacked for fitting: cell/samples.py.
 """
 
 from __future__ import annotations
 
 import hashlib
-import logging
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,30 +22,14 @@ from typing import Literal
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-from scipy import signal
 
 from cell.configio import join, load_dataclass, read_yaml, require
+from cell.derivatives import FilterConfig
 from drivers.errors import DataError
 
-log = logging.getLogger(__name__)
-
-DerivativeMode = Literal["zero_phase", "causal"]
 Split = Literal["train", "test", "loaded"]
 GAP_FACTOR = 1.5  # a time step longer than this x the median step starts a new trajectory (no max_gap_s)
 PAYLOAD_COM = ("payload_com_x", "payload_com_y", "payload_com_z")  # m, flange frame
-
-
-# ----------------------------------------------------------------------------------------- config
-@dataclass
-class FilterConfig:
-    """How velocities and accelerations are derived from the logged samples."""
-
-    cutoff_hz: float = 20.0  # Butterworth low-pass corner
-    order: int = 2  # filter order (zero-phase applies it twice: forward and backward)
-
-    def validate(self, where: str) -> None:
-        require(self.cutoff_hz > 0, join(where, "cutoff_hz"), f"must be > 0, got {self.cutoff_hz}")
-        require(1 <= self.order <= 8, join(where, "order"), f"must lie in 1..8, got {self.order}")
 
 
 @dataclass
@@ -357,185 +339,3 @@ def write_trajectory(path: Path, traj: Trajectory, traj_id: int | None = None) -
         cols["segment"] = traj.segment
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     pq.write_table(pa.table(cols), path)
-
-
-# ----------------------------------------------------------------------------------------- filters
-def butter(cfg: FilterConfig, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    nyq = 0.5 / dt
-    wn = min(cfg.cutoff_hz / nyq, 0.99)
-    b, a = signal.butter(cfg.order, wn)
-    return np.asarray(b), np.asarray(a)
-
-
-def zero_phase_derivatives(
-    t: np.ndarray, q: np.ndarray, dq: np.ndarray | None, cfg: FilterConfig | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """(dq, ddq) without phase lag, for offline use.
-
-    dq: the measured one when given, else the central difference of the low-passed q.
-    ddq: the central difference of dq, low-passed forward and backward (filtfilt).
-    """
-    cfg = cfg or FilterConfig()
-    dt = float(np.median(np.diff(t)))
-    b, a = butter(cfg, dt)
-    padlen = 3 * max(len(a), len(b))
-    can_filter = len(t) > padlen
-
-    def lowpass(x: np.ndarray) -> np.ndarray:
-        return signal.filtfilt(b, a, x, axis=0) if can_filter else x
-
-    v = np.asarray(dq, float) if dq is not None else np.gradient(lowpass(q), t, axis=0)
-    acc = lowpass(np.gradient(v, t, axis=0))
-    return v, acc
-
-
-class CausalDerivatives:
-    """Per-sample velocity/acceleration estimate for online use (the controller runs exactly this).
-
-    dq: the measured one when given, else the backward difference of q, low-passed;
-    ddq: the backward difference of dq, low-passed (Butterworth, direct form II transposed).
-    The first sample reports zero acceleration (and zero velocity when dq is not measured).
-    """
-
-    def __init__(self, n: int, dt: float, cfg: FilterConfig | None = None) -> None:
-        self.cfg = cfg or FilterConfig()
-        self.n = n
-        self.dt = dt
-        self.b, self.a = butter(self.cfg, dt)
-        self.b = self.b / self.a[0]
-        self.a = self.a / self.a[0]
-        self.reset()
-
-    def reset(self) -> None:
-        order = len(self.a) - 1
-        self._zv = np.zeros((order, self.n))
-        self._za = np.zeros((order, self.n))
-        self._q_prev: np.ndarray | None = None
-        self._v_prev: np.ndarray | None = None
-
-    def _filter(self, x: np.ndarray, z: np.ndarray) -> np.ndarray:
-        b, a = self.b, self.a
-        y = b[0] * x + z[0]
-        for i in range(len(z) - 1):
-            z[i] = b[i + 1] * x + z[i + 1] - a[i + 1] * y
-        z[-1] = b[-1] * x - a[-1] * y
-        return y
-
-    def _prime(self, z: np.ndarray, x: np.ndarray) -> None:
-        """Start the filter in steady state at input x (no start-up transient)."""
-        zi = signal.lfilter_zi(self.b, self.a)
-        z[:] = zi[:, None] * x[None, :]
-
-    def step(self, q: np.ndarray, dq: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        q = np.asarray(q, float)
-        if dq is None:
-            if self._q_prev is None:
-                raw_v = np.zeros(self.n)
-                self._prime(self._zv, raw_v)
-            else:
-                raw_v = (q - self._q_prev) / self.dt
-            v = self._filter(raw_v, self._zv)
-        else:
-            v = np.asarray(dq, float)
-        self._q_prev = q
-        if self._v_prev is None:
-            raw_a = np.zeros(self.n)
-            self._prime(self._za, raw_a)
-        else:
-            raw_a = (v - self._v_prev) / self.dt
-        self._v_prev = v
-        return v, self._filter(raw_a, self._za)
-
-    def run(self, q: np.ndarray, dq: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """The same per-sample pipeline over a whole recording (N, n) -> (dq, ddq)."""
-        self.reset()
-        out_v = np.empty_like(q, dtype=float)
-        out_a = np.empty_like(q, dtype=float)
-        for k in range(q.shape[0]):
-            out_v[k], out_a[k] = self.step(q[k], None if dq is None else dq[k])
-        return out_v, out_a
-
-
-def derivatives(
-    traj: Trajectory, mode: DerivativeMode = "zero_phase", cfg: FilterConfig | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """(dq, ddq) for one trajectory with the chosen filter."""
-    if mode == "zero_phase":
-        return zero_phase_derivatives(traj.t, traj.q, traj.dq, cfg)
-    if mode == "causal":
-        dt = float(np.median(np.diff(traj.t)))
-        return CausalDerivatives(traj.n, dt, cfg).run(traj.q, traj.dq)
-    raise ValueError(f"unknown derivative mode {mode!r} (zero_phase or causal)")
-
-
-@dataclass
-class Samples:
-    """Trajectories stacked for fitting: (N, n) arrays and the row where each trajectory starts."""
-
-    q: np.ndarray
-    dq: np.ndarray
-    ddq: np.ndarray
-    tau: np.ndarray
-    starts: np.ndarray  # first row of each trajectory (windows never reach across one)
-    names: list[str]
-    segment: np.ndarray  # global segment id per row (trajectory-unique), for subsampling by whole moves
-    mode: DerivativeMode = "zero_phase"
-
-    def __len__(self) -> int:
-        return int(self.q.shape[0])
-
-    def trajectory_slices(self) -> list[slice]:
-        ends = np.concatenate([self.starts[1:], [len(self)]])
-        return [slice(int(a), int(b)) for a, b in zip(self.starts, ends, strict=True)]
-
-    def take_rows(self, rows: np.ndarray) -> Samples:
-        """Rows (sorted) as a new Samples; a jump in row index starts a new trajectory."""
-        rows = np.sort(np.asarray(rows, np.int64))
-        new_start = np.ones(len(rows), bool)
-        new_start[1:] = np.diff(rows) != 1
-        starts_set = np.zeros(len(self), bool)
-        starts_set[self.starts] = True
-        new_start |= starts_set[rows]
-        return Samples(
-            q=self.q[rows], dq=self.dq[rows], ddq=self.ddq[rows], tau=self.tau[rows],
-            starts=np.flatnonzero(new_start), names=self.names, segment=self.segment[rows], mode=self.mode,
-        )
-
-
-def stack(trajs: Sequence[Trajectory], mode: DerivativeMode = "zero_phase", cfg: FilterConfig | None = None) -> Samples:
-    if not trajs:
-        raise DataError("no trajectories to stack (empty dataset split)")
-    qs, vs, accs, taus, segs, starts = [], [], [], [], [], []
-    row = 0
-    seg_base = 0
-    for tr in trajs:
-        v, a = derivatives(tr, mode, cfg)
-        qs.append(tr.q)
-        vs.append(v)
-        accs.append(a)
-        taus.append(tr.tau)
-        seg = tr.segment if tr.segment is not None else np.zeros(len(tr), np.int64)
-        _, inv = np.unique(seg, return_inverse=True)
-        segs.append(inv + seg_base)
-        seg_base += int(inv.max()) + 1
-        starts.append(row)
-        row += len(tr)
-    return Samples(
-        q=np.concatenate(qs), dq=np.concatenate(vs), ddq=np.concatenate(accs), tau=np.concatenate(taus),
-        starts=np.asarray(starts, np.int64), names=[t.name for t in trajs], segment=np.concatenate(segs), mode=mode,
-    )
-
-
-def subsample_segments(s: Samples, n_samples: int, seed: int = 0) -> Samples:
-    """About `n_samples` rows made of whole segments (moves) drawn at random: a shorter collection
-    of the same family, not a random scatter of rows (which would flatter small training sets)."""
-    if n_samples >= len(s):
-        return s
-    rng = np.random.default_rng(seed)
-    ids, counts = np.unique(s.segment, return_counts=True)
-    order = rng.permutation(len(ids))
-    total = np.cumsum(counts[order])
-    k = int(np.searchsorted(total, n_samples)) + 1
-    chosen = ids[order[:k]]
-    rows = np.flatnonzero(np.isin(s.segment, chosen))
-    return s.take_rows(rows[:n_samples])  # the last segment is cut so the count is never exceeded

@@ -25,7 +25,7 @@ import numpy as np
 import pinocchio as pin
 from filterpy.kalman import KalmanFilter
 
-from cell.dataset import FilterConfig
+from cell.derivatives import FilterConfig
 from cell.dynamics.fastpredict import FastPredictor
 from cell.dynamics.learned import LearnedModel
 from drivers.interfaces import ArmState

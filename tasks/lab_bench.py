@@ -11,11 +11,12 @@ from typing import Any, cast
 import numpy as np
 
 from cell.config import CellConfig
-from cell.dataset import DerivativeMode, Samples
+from cell.derivatives import DerivativeMode
 from cell.dynamics.artefact import load_model
 from cell.dynamics.fastpredict import FastPredictor
 from cell.dynamics.learned import Forest, LearnedModel, physics_part
 from cell.robot import RobotModel
+from cell.samples import Samples
 from drivers.errors import ConfigError
 from tasks.lab_robot import CELL_ROBOT, lab_robot, lab_settings
 from tasks.lab_train import TrainOptions, fit_model, load_samples

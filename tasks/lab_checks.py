@@ -11,9 +11,11 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from cell.dataset import FilterConfig, Samples, Trajectory, load_trajectories, stack
+from cell.dataset import Trajectory, load_trajectories
+from cell.derivatives import FilterConfig
 from cell.dynamics.learned import LearnedModel
 from cell.dynamics.physics import P1Model, P2Model
+from cell.samples import Samples, stack
 
 log = logging.getLogger(__name__)
 

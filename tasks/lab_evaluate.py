@@ -14,9 +14,10 @@ from tqdm import tqdm
 
 from cell.config import CellConfig, resolve
 from cell.configio import dumps_strict, read_yaml
-from cell.dataset import Trajectory, load_manifest, load_split, manifest_files, stack, subsample_segments
+from cell.dataset import Trajectory, load_manifest, load_split, manifest_files
 from cell.dynamics.artefact import save_model
 from cell.dynamics.physics import P2Model, identify_p2
+from cell.samples import stack, subsample_segments
 from drivers.errors import ConfigError
 from tasks.lab_checks import (
     leave_one_file_out,

@@ -11,22 +11,15 @@ from typing import Any, Literal, cast
 import numpy as np
 
 from cell.config import CellConfig
-from cell.dataset import (
-    DerivativeMode,
-    Samples,
-    files_sha256,
-    load_manifest,
-    load_split,
-    manifest_files,
-    stack,
-    subsample_segments,
-)
+from cell.dataset import files_sha256, load_manifest, load_split, manifest_files
+from cell.derivatives import DerivativeMode
 from cell.dynamics.artefact import save_model
 from cell.dynamics.features import FeatureSpec
 from cell.dynamics.learned import LearnedModel, XGBParams, fit_learned
 from cell.dynamics.physics import IdentificationConfig, P1Model, P2Model, identify_p2, nominal_p2
 from cell.dynamics.uncertainty import CoverageConfig
 from cell.robot import RobotModel
+from cell.samples import Samples, stack, subsample_segments
 from drivers.errors import ConfigError
 from tasks.lab_robot import CELL_ROBOT, lab_robot, lab_settings
 
@@ -147,7 +140,7 @@ def train(
     """Fit one model on the training split of a dataset and save it as an artefact folder.
 
     A model served in the control loop is trained with `derivatives="causal"`: its features then
-    come from the same causal pipeline (`cell.dataset.CausalDerivatives`) the controller runs.
+    come from the same causal pipeline (`cell.derivatives.CausalDerivatives`) the controller runs.
 
     CLI: main.py train --data artifacts/data/default/dataset.yaml --model H1 --out artifacts/models/h1
          [--samples 24000] [--window 1] [--grouping own|paper|per_joint|full]

@@ -10,18 +10,10 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from cell.dataset import (
-    CausalDerivatives,
-    FilterConfig,
-    Trajectory,
-    load_split,
-    load_trajectories,
-    stack,
-    subsample_segments,
-    write_trajectory,
-    zero_phase_derivatives,
-)
+from cell.dataset import Trajectory, load_split, load_trajectories, write_trajectory
+from cell.derivatives import CausalDerivatives, FilterConfig, zero_phase_derivatives
 from cell.recorder import Recorder
+from cell.samples import stack, subsample_segments
 from drivers.errors import ConfigError, DataError
 
 DT = 0.008

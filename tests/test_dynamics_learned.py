@@ -11,7 +11,6 @@ import pinocchio as pin
 import pytest
 import xgboost as xgb
 
-from cell.dataset import Samples
 from cell.dynamics.artefact import load_model, save_model
 from cell.dynamics.base import TorqueModel
 from cell.dynamics.fastpredict import FastPredictor, FlatForest
@@ -27,6 +26,7 @@ from cell.dynamics.features import (
 )
 from cell.dynamics.learned import LearnedModel, XGBParams, fit_learned
 from cell.dynamics.physics import identify_p2
+from cell.samples import Samples
 from drivers.errors import DataError
 
 SMALL = XGBParams(n_estimators=60, max_depth=5, learning_rate=0.2, nthread=2, early_stopping_rounds=10)
@@ -259,7 +259,7 @@ def test_damaged_artefact_gives_a_clear_error(robot_module, fitted, tmp_path):
 
 def test_served_step_runs_the_same_causal_pipeline_as_training(fitted):
     """`FastPredictor.step(q, dq)` = causal derivatives + model, exactly as features built offline."""
-    from cell.dataset import CausalDerivatives
+    from cell.derivatives import CausalDerivatives
 
     s, p2, h1, d = fitted
     test = motion(300, 31, trajs=1)

@@ -10,12 +10,12 @@ import json
 import numpy as np
 import pytest
 
-from cell.dataset import Samples
 from cell.dynamics.artefact import load_model, save_model
 from cell.dynamics.fastpredict import FastPredictor
 from cell.dynamics.learned import LearnedModel, XGBParams
 from cell.dynamics.uncertainty import SPEED_EDGES, Coverage, CoverageConfig
 from cell.observer import KalmanObserver
+from cell.samples import Samples
 from drivers.interfaces import ArmState
 from tasks.lab_train import TrainOptions, fit_model
 from tests.test_dynamics_learned import fit_h1, motion

@@ -25,9 +25,7 @@ PROJECT = set(ALLOWED)
 MAX_LINES = 500
 MAX_MAIN_LINES = 250  # main.py parses arguments and dispatches, nothing more
 # Modules being split along their concepts right now (issue 22, item 3); empty this list as each is done.
-OVER_LIMIT_FOR_NOW = {
-    "cell/dataset.py",
-}
+OVER_LIMIT_FOR_NOW: set[str] = set()
 
 
 def source_files() -> list[Path]:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import xgboost as xgb
 
-from cell.dataset import CausalDerivatives, FilterConfig
+from cell.derivatives import CausalDerivatives, FilterConfig
 from cell.dynamics.features import DerivedOne, Group, WindowBuffer, derived_layout
 from cell.dynamics.learned import PHYSICS_PART, LearnedModel
 

@@ -12,12 +12,12 @@ import numpy as np
 import xgboost as xgb
 
 from cell.configio import join, require
-from cell.dataset import Samples
 from cell.dynamics.base import ModelMeta
 from cell.dynamics.features import FeatureSpec, Group, derived, group_matrix, groups, state_matrix
 from cell.dynamics.physics import P2Model, robot_meta
 from cell.dynamics.uncertainty import Coverage, CoverageConfig
 from cell.robot import RobotModel
+from cell.samples import Samples
 
 log = logging.getLogger(__name__)
 
