@@ -15,7 +15,7 @@ from app.commands_plan import cmd_plan
 from app.sensing import FORCE_SOURCES, PREPARE_SAMPLES
 from app.tasks_registry import TASK_NAMES
 from cell.cliargs import COUNT, NTHREAD, PORT, SEED, float_in, int_in, int_list
-from cell.config import CONFIG_DIR, TOOLS
+from cell.config import CONFIG_DIR, REACTIONS, TOOLS
 from cell.signals import Terminated, received_sigterm, sigterm_as_interrupt
 from drivers.errors import CellError
 
@@ -168,6 +168,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bench peg-in-hole: run only these trial numbers (the same draws as in the full bench)")
     b.add_argument("--record", action="store_true",
                    help="bench peg-in-hole: log every trial run (runs/<date>-bench-peg/trial_NNN, as `run` logs)")
+    b.add_argument("--impacts", type=COUNT, default=40, help="scripted impacts (bench collision)")
+    b.add_argument("--free-s", type=float_in(0, 3600), default=600.0,
+                   help="simulated seconds of free motion for false alarms (bench collision)")
+    b.add_argument("--reaction", choices=REACTIONS, default="stop", help="bench collision: the reaction to impacts")
     b.add_argument("--n", type=COUNT, default=500, help="samples (bench drivers)")
     b.add_argument("--data", default=None, help="dataset manifest (bench model)")
     b.add_argument("--model", default=None, help="model artefact (bench model; default: train an H1)")

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from app.common import emit, load_cell_config
-from app.sensing import ensure_virtual_artefacts, make_force_source
+from app.sensing import ensure_virtual_artefacts, make_force_source, with_guard
 from app.tasks_registry import robot_for
 from cell.config import load_config
 from cell.loop import OpenCell
@@ -39,7 +39,7 @@ def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
         ensure_virtual_artefacts(cfg, "peg", "sim", robot)
 
     def wrap(cell: OpenCell) -> OpenCell:
-        return make_force_source(cfg, args.force_source, "peg", cell, robot)
+        return with_guard(cfg, "peg", make_force_source(cfg, args.force_source, "peg", cell, robot), robot)
 
     if args.trials < 1 or args.max_offset_mm < 0 or args.max_tilt_deg < 0:
         raise ConfigError("bench peg-in-hole: --trials must be >= 1, --max-offset-mm and --max-tilt-deg >= 0")
@@ -93,6 +93,19 @@ def _bench_faults(args: argparse.Namespace) -> dict[str, Any]:
     return bench_faults(cfg, robot_for(cfg, "wipe"))
 
 
+def _bench_collision(args: argparse.Namespace) -> dict[str, Any]:
+    """Scripted impacts and free motion on the simulated cell, the peg tool's hybrid model detecting."""
+    from bench.collision import bench_collision
+    from cell.virtual_sensor import load_observer_model
+
+    cfg = load_cell_config(args)
+    robot = robot_for(cfg, "peg")
+    ensure_virtual_artefacts(cfg, "peg", "sim", robot)
+    model = load_observer_model(cfg.virtual_sensor.path("model", "peg"), robot)
+    return bench_collision(cfg, robot, model, impacts=args.impacts, seed=args.seed if args.seed is not None else 0,
+                           free_s=args.free_s, reaction=args.reaction)
+
+
 BENCHES: dict[str, Bench] = {
     "sim": Bench(_bench_sim),
     "plant": Bench(_bench_plant),
@@ -100,6 +113,8 @@ BENCHES: dict[str, Bench] = {
     "model": Bench(_bench_model),
     "peg-in-hole": Bench(bench_peg_in_hole),
     "faults": Bench(_bench_faults, passed=lambda out: out["failures"] == 0),
+    # Exit 1 when an impact went undetected or free motion raised an alarm.
+    "collision": Bench(_bench_collision, passed=lambda out: not out["missed"] and out["false_alarms"] == 0),
 }
 BENCH_NAMES = tuple(BENCHES)
 

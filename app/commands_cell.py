@@ -8,7 +8,7 @@ import numpy as np
 
 from app.cells import cell_kind, open_cell
 from app.common import emit, load_cell_config
-from app.sensing import ensure_virtual_artefacts, make_force_source
+from app.sensing import ensure_virtual_artefacts, make_force_source, with_guard
 from app.tasks_registry import TASKS, build_task, robot_for
 from cell.config import load_config
 
@@ -23,7 +23,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         ensure_virtual_artefacts(cfg, spec.tool, kind, robot, args.seed)
     holder = open_cell(cfg, kind, robot, args.seed, spec.scene)
     try:
-        cell = make_force_source(cfg, args.force_source, spec.tool, holder.open(), robot)
+        cell = with_guard(cfg, spec.tool, make_force_source(cfg, args.force_source, spec.tool, holder.open(), robot),
+                          robot)
         from tasks.runner import run_task
 
         summary = run_task(task, cell, cfg, robot, max_duration, record=not args.no_record,

@@ -12,6 +12,7 @@ import numpy as np
 
 from app.cells import cell_kind, open_cell
 from app.common import emit
+from app.sensing import with_guard
 from app.tasks_registry import robot_for
 from cell.config import CellConfig, load_config
 from cell.robot import RobotModel
@@ -65,7 +66,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     def open_for_plan() -> tuple[Any, Any]:
         holder = open_cell(cfg, cell_kind(cfg, args.cell), robot, args.seed, "free")
         try:
-            return holder.open(), holder
+            return with_guard(cfg, "wipe", holder.open(), robot), holder
         except BaseException:
             holder.close()
             raise

@@ -6,6 +6,8 @@ import logging
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
+
 from app.cells import calibration_cells, cell_identity, check_plant, is_simulated
 from app.tasks_registry import robot_for, working_posture
 from cell.config import CellConfig
@@ -33,6 +35,33 @@ def make_force_source(cfg: CellConfig, source: str, tool: str, cell: OpenCell, r
     log.info("force source: virtual sensor (%s) for the %s tool; the F/T sensor is logged as ground truth",
              virtual.label, tool)
     return replace(cell, force=virtual, ground_truth=cell.force)
+
+
+def with_guard(cfg: CellConfig, tool: str, cell: OpenCell, robot: RobotModel) -> OpenCell:
+    """The cell with collision detection for its tasks (`collision` in the config) on the tool's hybrid
+    model.  Without a model: refused on the real cell (it would run blind to collisions), a warning on a
+    simulated one.  `collision.enabled: false` turns it off."""
+    if not cfg.collision.enabled:
+        log.warning("collision detection is off (collision.enabled: false)")
+        return cell
+    model_dir = cfg.virtual_sensor.path("model", tool)
+    if not (model_dir / "model.json").exists():
+        if not is_simulated(cell.kind):
+            raise ConfigError(f"collision detection for the {tool} tool needs its model ({model_dir}); make it with "
+                              f"`main.py prepare --tool {tool} --cell real`, or set collision.enabled: false")
+        log.warning("collision detection off for this run: no model for the %s tool at %s (main.py prepare --tool %s)",
+                    tool, model_dir, tool)
+        return cell
+    from cell.contact_guard import build_guard
+    from cell.virtual_sensor import load_observer_model
+
+    model = load_observer_model(model_dir, robot)
+    point = np.asarray(cfg.virtual_sensor.wrench_point, float)
+
+    def factory(task: str, contact_limit_n: float) -> Any:
+        return build_guard(cfg.collision, model, robot, cfg.loop.period_s, task, contact_limit_n, point)
+
+    return replace(cell, guard=factory)
 
 
 def run_prepare(cfg: CellConfig, tool: str, kind: str, seed: int | None, samples: int, force: bool) -> dict[str, Any]:

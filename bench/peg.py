@@ -151,7 +151,8 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
         recorder = Recorder(record_dir, cfg.recording.chunk_rows) if record_dir is not None else None
         loop = ControlLoop(cell.arm, force, scored, SafetyMonitor(cfg.safety, robot, cfg.loop.period_s),
                            cell.ticker, recorder, cfg.loop.period_s, pcfg.max_duration_s,
-                           cfg.loop.slow_cycle_fraction, ground_truth=truth)
+                           cfg.loop.slow_cycle_fraction, ground_truth=truth,
+                           guard=cell.guard_for(task, cfg.safety.max_tool_force_n))
         result = loop.run()
     finally:
         holder.close()

@@ -1,4 +1,5 @@
-"""The fixed-period control loop: read state -> estimate wrench -> decide -> safety -> command -> record.
+"""The fixed-period control loop: read state -> estimate wrench -> detect collisions -> decide -> safety -> command
+-> record.
 
 The loop owns safety and shutdown: a safety limit, a driver fault, any exception or Ctrl+C stops the
 arm and closes the recording before the loop returns (or re-raises an unexpected error).
@@ -8,11 +9,13 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 
+from cell.contact_guard import CollisionStop, ContactGuard, Reaction
 from cell.recorder import Recorder
 from cell.safety import SafetyMonitor
 from cell.signals import Terminated
@@ -82,6 +85,14 @@ class OpenCell:
     force: ForceSource  # the source the task regulates with
     ticker: Ticker
     ground_truth: ForceSource | None = None  # the F/T sensor, when the task uses another source
+    # Builds the collision guard for a task: (task name, its contact force limit [N]) -> guard.
+    guard: Callable[[str, float], ContactGuard | None] | None = None
+
+    def guard_for(self, task: Any, contact_limit_n: float) -> ContactGuard | None:
+        """A fresh guard for `task` (`contact_limit_n` unless its collision settings name one), or None."""
+        if self.guard is None:
+            return None
+        return self.guard(task.name, contact_limit_n)
 
 
 class WallTicker:
@@ -142,12 +153,13 @@ class TimingStats:
 
 @dataclass
 class LoopResult:
-    outcome: str  # "done", "failed", "safety_stop", "fault", "interrupted", "timeout", "error"
+    outcome: str  # "done", "failed", "safety_stop", "collision", "fault", "interrupted", "timeout", "error"
     reason: str
     cycles: int
     sim_time_s: float
     wall_time_s: float
     timing: dict[str, float | int]
+    collision: dict[str, Any] | None = None  # the contact guard's summary, when one ran
 
 
 class ControlLoop:
@@ -163,6 +175,7 @@ class ControlLoop:
         max_duration_s: float,
         slow_fraction: float = 0.8,
         ground_truth: ForceSource | None = None,
+        guard: ContactGuard | None = None,
     ) -> None:
         self.arm = arm
         self.force = force
@@ -174,6 +187,7 @@ class ControlLoop:
         self.max_cycles = int(round(max_duration_s / period))
         self.timing = TimingStats(period, slow_fraction)
         self.ground_truth = ground_truth
+        self.guard = guard
 
     def run(self) -> LoopResult:
         outcome, reason = "done", ""
@@ -183,13 +197,15 @@ class ControlLoop:
         state: ArmState | None = None
         wrench: Wrench | None = None
         truth: Wrench | None = None
+        reaction: Reaction | None = None
+        reaction_reason = ""
         try:
             self.arm.arm()
             q_cmd = self.arm.last_sent
             assert q_cmd is not None
             self.ticker.start()
-            while not self.task.done:
-                if cycle >= self.max_cycles:
+            while not self.task.done or reaction is not None:
+                if cycle >= self.max_cycles and reaction is None:
                     outcome, reason = "timeout", f"task did not finish within {self.max_cycles * self.period:.1f} s"
                     self.task.abort(reason)
                     break
@@ -197,28 +213,49 @@ class ControlLoop:
                 state = self.arm.read_state()
                 wrench = self.force.read(state)
                 truth = self.ground_truth.read(state) if self.ground_truth is not None else None
-                self.safety.check_state(state, truth if truth is not None else wrench)
                 obs = Observation(t=cycle * self.period, cycle=cycle, state=state, wrench=wrench, q_cmd=q_cmd)
-                cmd = self.task.step(obs)
-                if self.task.done:
-                    self._record(obs, cmd, q_cmd, False, truth, time.perf_counter() - t0)
-                    break
+                # The collision detector first: a collision that also trips a limit is reported as one.
+                if self.guard is not None:
+                    if reaction is None:
+                        det = self.guard.observe(state, obs.t, cycle, self.task.state_name)
+                        if det is not None:
+                            reaction = self.guard.react(det, state)  # a stop raises CollisionStop
+                            if reaction is not None:
+                                reaction_reason = det.describe()
+                                self.task.abort(f"{reaction_reason}: {reaction.kind}")
+                    else:
+                        self.guard.detector.update(state)
+                self.safety.check_state(state, truth if truth is not None else wrench)
+                if reaction is not None:
+                    assert self.guard is not None
+                    cmd = Command(q=reaction.step(state, self.guard.reaction_force(state)),
+                                  log={"reaction": reaction.kind})
+                else:
+                    cmd = self.task.step(obs)
+                    if self.task.done:
+                        self._record(obs, cmd, q_cmd, False, truth, time.perf_counter() - t0)
+                        break
                 self.safety.check_command(cmd.q)
                 sent = self.arm.send_target(cmd.q)
                 q_cmd = sent.q
                 if cmd.rebias_force:
                     self.force.rebias()
+                    if self.guard is not None:
+                        self.guard.rebias()
                     if self.ground_truth is not None:
                         self.ground_truth.rebias()
                 compute = time.perf_counter() - t0
                 self.timing.add(compute)
                 self._record(obs, cmd, q_cmd, sent.clipped, truth, compute)
                 cycle += 1
+                if reaction is not None and reaction.done:
+                    outcome, reason = "collision", f"{reaction_reason}: {reaction.describe()}"
+                    break
                 self.ticker.wait()
-            if self.task.summary().get("outcome") == "failed":
+            if outcome == "done" and self.task.summary().get("outcome") == "failed":
                 outcome, reason = "failed", str(self.task.summary().get("reason", ""))
         except SafetyStopError as exc:
-            outcome, reason = "safety_stop", exc.reason
+            outcome, reason = ("collision" if isinstance(exc, CollisionStop) else "safety_stop"), exc.reason
             self.task.abort(f"safety stop: {exc.reason}")
             log.error("safety stop: %s", exc.reason)
             if state is not None and wrench is not None and q_cmd is not None:  # the tripping sample
@@ -256,6 +293,7 @@ class ControlLoop:
             sim_time_s=cycle * self.period,
             wall_time_s=time.perf_counter() - wall0,
             timing={**timing, "missed_deadlines": overruns},
+            collision=self.guard.summary() if self.guard is not None else None,
         )
 
     def _shutdown(self, attempts: int = 3) -> None:
@@ -299,5 +337,7 @@ class ControlLoop:
             for k, v in zip(("fx", "fy", "fz", "mx", "my", "mz"), truth.vector, strict=True):
                 row[f"sensor_{k}"] = float(v)
         row.update(cmd.log)
+        if self.guard is not None:
+            row.update(self.guard.log_columns())
         row["compute_ms"] = compute * 1e3
         self.recorder.append(row)

@@ -215,7 +215,8 @@ class MomentumObserver:
     kind = "momentum"
 
     def __init__(self, model: LearnedModel, dt: float, gain: float | np.ndarray, rebias_samples: int = 25,
-                 filter_cfg: FilterConfig | None = None) -> None:
+                 filter_cfg: FilterConfig | None = None, trapezoid: bool = False) -> None:
+        self.trapezoid = trapezoid  # integrate the torques by the trapezoidal rule (rectangle: False)
         if model.physics is None:
             raise ValueError("the momentum observer needs a model with a physics part (H1)")
         self.fast = ContactPredictor(model, dt, filter_cfg)
@@ -237,8 +238,11 @@ class MomentumObserver:
         self.bias.reset()
         self.r = np.zeros(self.n)
         self.integral = np.zeros(self.n)
+        self._beta: np.ndarray | None = None
         self.p0: np.ndarray | None = None
         self._estimate = np.zeros(self.n)
+        self.inertial = np.zeros(self.n)
+        self.acceleration = np.zeros(self.n)
 
     def update(self, state: ArmState) -> np.ndarray:
         q = np.asarray(state.q, float)
@@ -254,10 +258,18 @@ class MomentumObserver:
         C = pin.computeCoriolisMatrix(pm, pd, q, v)
         g = pin.computeGeneralizedGravity(pm, pd, q)
         p = M @ v
+        self.acceleration = a
+        self.inertial = M @ a  # the rigid body's inertial torque at the causal acceleration (for thresholds)
         if self.p0 is None:
             self.p0 = p
         beta = np.asarray(state.tau, float) + C.T @ v - g - losses - residual
-        self.integral += (beta + self.r) * self.dt
+        if self.trapezoid and self._beta is not None:
+            # The torque changes within a period (the servo's feedforward as a move starts): the
+            # end-of-period sample integrated as a constant reads that change as an external torque.
+            self.integral += (0.5 * (beta + self._beta) + self.r) * self.dt
+        else:
+            self.integral += (beta + self.r) * self.dt
+        self._beta = beta
         self.r = self.K * (p - self.p0 - self.integral)
         raw = -self.r
         self.bias.push(raw)

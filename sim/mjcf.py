@@ -148,6 +148,30 @@ def _hole_fixture(scene: SceneConfig, profile: PlantProfile, tilt: tuple[float, 
     return "".join(geoms)
 
 
+OBSTACLE_HALF = (0.1, 0.1, 0.01)  # m: the collision bench's plates (half sizes; the face is the xy plane)
+OBSTACLE_PLATE_KG = 0.5  # the soft obstacle's plate: a light body on the spring
+
+
+def _obstacles() -> str:
+    """Two plates on mocap bodies, parked far away; the collision bench places one before each scripted
+    impact.  `obstacle_rigid` is as stiff as the cell's fixtures; `obstacle_soft` is a light plate on a
+    slide joint along its normal whose stiffness and damping (N/m, N·s/m: set per impact) make it a
+    linear spring, as the body-region models of ISO/TS 15066 are (MuJoCo's soft contacts would scale
+    with the arm's effective mass instead)."""
+    hx, hy, hz = OBSTACLE_HALF
+    plate = f'type="box" pos="0 0 {-hz:.6g}" size="{hx:.6g} {hy:.6g} {hz:.6g}" condim="3" friction="0.3 0.005 0.0001"'
+    stiff = 'solref="0.002 1" solimp="0.95 0.99 0.0005"'
+    return (
+        '<body name="obstacle_rigid" mocap="true" pos="5 5 -5">'
+        f'<geom name="obstacle_rigid" {plate} rgba=".8 .2 .2 .6" {stiff}/></body>'
+        '<body name="obstacle_soft_base" mocap="true" pos="-5 5 -5">'
+        '<body name="obstacle_soft">'
+        '<joint name="obstacle_slide" type="slide" axis="0 0 1" range="-0.08 0.001" stiffness="20000" damping="100"/>'
+        f'<geom name="obstacle_soft" {plate} mass="{OBSTACLE_PLATE_KG}" rgba=".2 .8 .2 .6" {stiff}/>'
+        "</body></body>"
+    )
+
+
 def build_mjcf(
     urdf: Path, profile: PlantProfile, scene: SceneConfig, physics_dt: float,
     fixture_tilt: tuple[float, float] = (0.0, 0.0),
@@ -165,6 +189,8 @@ def build_mjcf(
         world = _table(scene, profile)
     elif scene.kind == "peg":
         world = _hole_fixture(scene, profile, fixture_tilt)
+    # Bodies with joints of their own come after the arm: the plant takes the first six dofs as the arm's.
+    after = _obstacles() if scene.kind == "obstacle" else ""
     # The servo's PD acts through position actuators so that MuJoCo integrates its stiffness and
     # damping implicitly (an explicit PD on the light wrist joints chatters against stiff contacts);
     # a motor per joint carries the servo's feedforward and integral terms.
@@ -185,7 +211,9 @@ def build_mjcf(
         + "".join(opening)
         + tool_xml
         + "".join(closing)
-        + "</body></worldbody>"
+        + "</body>"
+        + after
+        + "</worldbody>"
         + f"<actuator>{actuators}</actuator>"
         '<sensor><force name="ft_force" site="ft_site"/><torque name="ft_torque" site="ft_site"/></sensor>'
         "</mujoco>"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import collections.abc
 import dataclasses
 import logging
 from pathlib import Path
@@ -105,6 +106,8 @@ class Plant:
         self._v6 = np.zeros(6)
         self._saved = np.empty(mujoco.mj_stateSize(self.model, STEP_STATE))
         self.recollided = 0  # physics steps taken again after a failed collision detection (_physics_step)
+        # Called after every physics step (the collision bench's obstacle watches its contact forces).
+        self.after_physics_step: collections.abc.Callable[[], None] | None = None
         tool = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "tool")
         self._tool_bodies = {b for b in range(self.model.nbody) if self._descends(b, tool)}
         self.reset(q0)
@@ -223,6 +226,8 @@ class Plant:
                 if self.external_wrench is not None:
                     self._apply_tcp_wrench(self.external_wrench)
             self._physics_step()
+            if self.after_physics_step is not None:
+                self.after_physics_step()
             self._tau = np.array(d.qfrc_actuator[arm])  # clamped at the effort limit by MuJoCo
             demand = np.abs(d.actuator_force[:6] + d.actuator_force[6:12])
             np.maximum(self.peak_demand, demand, out=self.peak_demand)

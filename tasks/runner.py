@@ -111,9 +111,10 @@ def run_task(
         log.info("recording to %s", run_dir)
     safety = SafetyMonitor(cfg.safety, robot, cfg.loop.period_s)
     tap = GroundTruthTap(cell.ground_truth, cell.force, task) if cell.ground_truth is not None else None
+    guard = cell.guard_for(task, cfg.safety.max_tool_force_n)
     loop = ControlLoop(
         cell.arm, cell.force, task, safety, cell.ticker, recorder, cfg.loop.period_s, max_duration_s,
-        cfg.loop.slow_cycle_fraction, ground_truth=tap,
+        cfg.loop.slow_cycle_fraction, ground_truth=tap, guard=guard,
     )
     result = loop.run()
     # The arm is stopped: an interrupt now waits for the summary and the plot.
@@ -130,7 +131,8 @@ def run_task(
             wall_time_s=result.wall_time_s,
             real_time_factor=result.sim_time_s / result.wall_time_s if result.wall_time_s > 0 else None,
             timing=result.timing,
-            safety_stop=result.outcome == "safety_stop",
+            safety_stop=result.outcome in ("safety_stop", "collision"),
+            collision=result.collision if result.collision is not None else {"enabled": False},
         )
         if tap is not None:
             summary.update(tap.summary(summary))

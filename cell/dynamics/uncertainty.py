@@ -96,19 +96,23 @@ class Coverage:
             w[:, js] *= np.minimum(1.0, np.abs(dq[:, js]) / self.stick_speed)
         return w
 
-    def weight_one(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
-        """`weight` of one sample (n,), without batch overhead (the served path)."""
+    def weight_one(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, min_count: float | None = None,
+                   stick: bool = True) -> np.ndarray:
+        """`weight` of one sample (n,), without batch overhead (the served path); `min_count` in place of
+        the model's own (the collision detector asks for coverage where the model does not gate), and
+        without the sticking fade when `stick` is false."""
         js = self.joints
         w = np.ones(len(q))
-        if self.min_count > 0:
+        min_count = self.min_count if min_count is None else min_count
+        if min_count > 0:
             x = np.stack([q[js], dq[js], ddq[js]], axis=-1)
             idx = np.floor((x - self.lo) / self.width).astype(np.int64)
             inside = np.all((idx >= 0) & (idx < self.bins), axis=-1)
             c = np.zeros(len(js))
             k = np.flatnonzero(inside)
             c[k] = self.counts[k, idx[k, 0], idx[k, 1], idx[k, 2]]
-            w[js] = np.minimum(1.0, c / self.min_count)
-        if self.stick_speed > 0:
+            w[js] = np.minimum(1.0, c / min_count)
+        if stick and self.stick_speed > 0:
             w[js] *= np.minimum(1.0, np.abs(dq[js]) / self.stick_speed)
         return w
 

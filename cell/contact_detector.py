@@ -1,0 +1,172 @@
+"""Collision detection on the hybrid model: a fast momentum-observer residual per joint against thresholds
+set by the model's own uncertainty, checked every control period.
+
+The residual r (N·m, the external joint torque in the cell's convention) comes from a generalised
+momentum observer of its own, with a far higher bandwidth than the virtual sensor's (that one is tuned
+for steady contact forces and filters short impacts away).  Per joint the threshold is
+
+    thr_j = floor_j + sigma_factor * sigma_j(|q'_j|) + band_j * max(0, 1 - |q'_j| / stick_speed)
+            + inertia * |(M(q) q'')_j| + payload_kg * |g1_j(q) - g1_j(q_zero)|
+
+* sigma_j: the model's one-sigma residual at that joint speed (the model lab's held-out levels, stored
+  with the model; wider where the model is less sure, e.g. at high speed), and the physics part's
+  level where the training data did not cover the joint's (q, q', q'');
+* band_j: the joint's static friction band (the model's Coulomb level): a joint at or near rest holds
+  whatever torque its friction allows, which no model of the state predicts;
+* inertia: the relative error of the rigid body's inertial torque (mass errors, and the measured
+  torque's latency against the joint positions, which shows while the arm accelerates);
+* g1: the joint torques of 1 kg of payload at the tool's centre of mass (an unknown payload error
+  moves the gravity torque by this per kg, relative to where the residual was last zeroed);
+* floor_j: what is left (quantisation, the servo's transients) and the configured margin.
+
+In free motion a joint over its threshold for `confirm_periods` periods in a row is a collision.  In a
+state where the task expects contact the joint residual carries the task's own force, so there the
+fast residual is mapped to a tool wrench and its force checked against the task's contact limit: a
+short impact the task's filtered wrench would hide still counts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from cell.config import DetectorSettings
+from cell.dynamics.learned import LearnedModel
+from cell.observer import MomentumObserver
+from cell.robot import RobotModel
+from cell.wrench_map import JacobianMap
+from drivers.errors import SafetyStopError
+from drivers.interfaces import ArmState
+
+GRAVITY = np.array([0.0, 0.0, 9.81])
+
+
+@dataclass
+class Detection:
+    """One collision: when, where and how clearly."""
+
+    t: float  # s since the loop started
+    cycle: int
+    state: str  # the task's state
+    mode: str  # "free" (joint thresholds) or "contact" (tool force against the contact limit)
+    joints: list[int]  # 1-based joints over their thresholds (free mode)
+    ratio: float  # largest |r_j| / thr_j (free) or |F| / limit (contact)
+    residual_nm: list[float]
+    threshold_nm: list[float]
+    force_n: list[float]  # the fast tool force at detection, tool frame (as the F/T sensor; tool on environment)
+
+    def describe(self) -> str:
+        if self.mode == "free":
+            js = ", ".join(str(j) for j in self.joints)
+            return (f"collision in state {self.state} at t={self.t:.3f} s: joint{'s' if len(self.joints) > 1 else ''} "
+                    f"{js} over threshold ({self.ratio:.1f}x)")
+        return (f"collision in state {self.state} at t={self.t:.3f} s: fast tool force "
+                f"{np.linalg.norm(self.force_n):.0f} N over the contact limit ({self.ratio:.1f}x)")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"t": round(self.t, 4), "cycle": self.cycle, "state": self.state, "mode": self.mode,
+                "joints": list(self.joints), "ratio": round(self.ratio, 3),
+                "residual_nm": [round(v, 3) for v in self.residual_nm],
+                "threshold_nm": [round(v, 3) for v in self.threshold_nm],
+                "force_n": [round(v, 2) for v in self.force_n]}
+
+
+class CollisionDetector:
+    """Fast residual, thresholds and the tool force they imply, one control period at a time."""
+
+    def __init__(self, model: LearnedModel, robot: RobotModel, dt: float, settings: DetectorSettings,
+                 wrench_point: np.ndarray) -> None:
+        n = robot.n
+        if len(settings.floor_nm) != n:
+            raise ValueError(f"collision.detector.floor_nm needs {n} values (one per joint), "
+                             f"got {len(settings.floor_nm)}")
+        self.settings = settings
+        self.dt = dt
+        self.n = n
+        self.observer = MomentumObserver(model, dt, settings.observer_gain,
+                                         max(1, int(round(settings.rebias_window_s / dt))), trapezoid=True)
+        self.coverage = model.coverage
+        # The levels blended by coverage alone (the sticking regime has its own term below).
+        self._levels = (dataclasses.replace(model.coverage, blend=True, stick_speed=0.0)
+                        if model.coverage is not None else None)
+        self.floor = np.asarray(settings.floor_nm, float)
+        self.wrench_map = JacobianMap(robot, np.asarray(wrench_point, float))
+        # 1 kg at the tool's centre of mass: its gravity torques are what a payload error adds per kg.
+        self._pm = robot.model.copy()
+        tool = robot.tool
+        com = tool.com if tool.com is not None else np.asarray(tool.tcp_offset, float) / 2
+        flange = self._pm.frames[robot.flange_id]
+        self._com_id = self._pm.addFrame(pin.Frame("payload_com", flange.parentJoint, robot.flange_id,
+                                                   flange.placement * pin.SE3(np.eye(3), np.asarray(com, float)),
+                                                   pin.FrameType.OP_FRAME))
+        self._pd = self._pm.createData()
+        self.reset()
+
+    def reset(self) -> None:
+        self.observer.reset()
+        self._g_zero = np.zeros(self.n)
+        self._zeroed = False
+        self._over = np.zeros(self.n, np.int64)
+        self._force_over = 0
+        self.residual = np.zeros(self.n)
+        self.threshold = np.full(self.n, np.inf)
+        self.force = np.zeros(3)
+        self._q = np.zeros(self.n)
+
+    def rebias(self) -> None:
+        """Zero the residual here (arm at rest, no contact): the payload term then counts from this pose."""
+        self.observer.rebias()
+        self._g_zero = self._payload_gravity(self._q)
+        self._zeroed = True
+
+    def _payload_gravity(self, q: np.ndarray) -> np.ndarray:
+        J = pin.computeFrameJacobian(self._pm, self._pd, q, self._com_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        return np.asarray(J[:3].T @ GRAVITY)
+
+    def thresholds(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
+        s = self.settings
+        thr = self.floor.copy()
+        if self.coverage is not None and self._levels is not None:
+            # Where the training data was sparse the hybrid's level does not hold: the physics part's does.
+            w = self.coverage.weight_one(q, dq, ddq, min_count=s.coverage_min_count, stick=False)
+            thr += s.sigma_factor * self._levels.sigma(dq[None, :], w[None, :])[0]
+        if s.stick_speed > 0 and self.coverage is not None:
+            thr += self.coverage.static_band * np.maximum(0.0, 1.0 - np.abs(dq) / s.stick_speed)
+        if s.inertia_uncertainty > 0:
+            thr += s.inertia_uncertainty * np.abs(self.observer.inertial)
+        if s.payload_uncertainty_kg > 0:
+            g = self._payload_gravity(q)
+            thr += s.payload_uncertainty_kg * np.abs(g - self._g_zero if self._zeroed else g)
+        return thr
+
+    def update(self, state: ArmState) -> np.ndarray:
+        """One period: the residual (N·m), its thresholds and the fast tool force; returns the residual."""
+        q = np.asarray(state.q, float)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(state.dq)) and np.all(np.isfinite(state.tau))):
+            raise SafetyStopError("collision detector: non-finite joint state (q, q' or torque): cannot check "
+                                  "for collisions")
+        self._q = q
+        self.residual = self.observer.update(state)
+        self.threshold = self.thresholds(q, np.asarray(state.dq, float), self.observer.acceleration)
+        self.force = self.wrench_map.map(q, self.residual).wrench[:3]
+        return self.residual
+
+    def check_free(self) -> np.ndarray:
+        """Joints (0-based) over their thresholds for `confirm_periods` periods in a row."""
+        over = np.abs(self.residual) > self.threshold
+        self._over = np.where(over, self._over + 1, 0)
+        self._force_over = 0
+        return np.flatnonzero(self._over >= self.settings.confirm_periods)
+
+    def check_contact(self, limit_n: float) -> bool:
+        """Whether the fast tool force has been over `limit_n` for `confirm_periods` periods in a row."""
+        self._over[:] = 0
+        self._force_over = self._force_over + 1 if float(np.linalg.norm(self.force)) > limit_n else 0
+        return self._force_over >= self.settings.confirm_periods
+
+    def ratios(self) -> np.ndarray:
+        return np.abs(self.residual) / self.threshold

@@ -1,0 +1,256 @@
+"""Collision detection and reaction: thresholds from the model, quiet free motion, a push caught within
+a few periods, each reaction's behaviour, the run summary and recording, the config and the bench."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+import pytest
+
+from cell.config import CollisionConfig, DetectorSettings, TaskContactSafety
+from cell.configio import load_dataclass
+from cell.contact_guard import build_guard
+from cell.loop import Command, ControlLoop, Observation
+from cell.recorder import Recorder, read_log
+from cell.safety import SafetyMonitor
+from cell.virtual_sensor import load_observer_model
+from drivers.errors import ConfigError, SafetyStopError
+from drivers.interfaces import ArmState
+from tests.vsfixtures import artefacts
+
+
+@pytest.fixture(scope="module")
+def vs():
+    return artefacts()
+
+
+@pytest.fixture(scope="module")
+def model(vs):
+    return load_observer_model(vs["cfg"].virtual_sensor.path("model", "wipe"), vs["robot"])
+
+
+def _guard(vs, model, reaction: str = "stop", contact_states: list[str] | None = None, limit: float = 150.0,
+           **detector: Any):
+    cfg = vs["cfg"]
+    coll = dataclasses.replace(cfg.collision, reaction=reaction,
+                               detector=dataclasses.replace(cfg.collision.detector, **detector),
+                               tasks={"play": TaskContactSafety(contact_states=contact_states or [])})
+    return build_guard(coll, model, vs["robot"], cfg.loop.period_s, "play", limit,
+                       np.asarray(cfg.virtual_sensor.wrench_point, float))
+
+
+class PushTask:
+    """Moves the TCP along +y at `speed` and, from cycle `push_at`, a hand pushes the tool with `force`
+    (world frame, on the tool).  Ends after `cycles`."""
+
+    name = "play"
+
+    def __init__(self, robot, plant, q0, speed: float, push_at: int | None, force, cycles: int, dt: float,
+                 state: str = "move") -> None:
+        self.robot, self.plant, self.q = robot, plant, np.array(q0, float)
+        self.pose = robot.tcp_pose(self.q)
+        self.speed, self.push_at, self.force, self.cycles, self.dt = speed, push_at, force, cycles, dt
+        self.k = 0
+        self.state_name = state
+        self.aborted = ""
+        self.pushed_at_t: float | None = None
+
+    @property
+    def done(self) -> bool:
+        return self.k >= self.cycles or bool(self.aborted)
+
+    def step(self, obs: Observation) -> Command:
+        if self.push_at is not None and self.k == self.push_at:
+            self.plant.external_wrench = np.concatenate([self.force, np.zeros(3)])
+            self.pushed_at_t = obs.t
+        self.k += 1
+        ramp = min(1.0, self.k * self.dt / 0.25)  # a smooth start, as the cell's own moves have
+        v = self.speed * 0.5 * (1.0 - np.cos(np.pi * ramp))
+        self.pose.translation = self.pose.translation + np.array([0.0, v * self.dt, 0.0])
+        self.q, _ = self.robot.ik(self.pose, self.q, iters=20)
+        return Command(q=self.q.copy())
+
+    def abort(self, reason: str) -> None:
+        self.aborted = reason
+
+    def summary(self) -> dict[str, Any]:
+        return {"outcome": "failed" if self.aborted else "done", "reason": self.aborted}
+
+
+def _posture(robot, home, xyz):
+    from cell.trajectory import tool_down_pose
+
+    q, ok = robot.ik(tool_down_pose(np.asarray(xyz, float)), home)
+    assert ok
+    return q
+
+
+def _run(vs, model, guard, speed=0.05, push_at=None, force=(0.0, 0.0, 0.0), cycles=150, record=None,
+         state="move"):
+    from sim.cell import make_sim_cell
+
+    cfg, robot = vs["cfg"], vs["robot"]
+    holder = make_sim_cell(cfg, robot.limits, scene_kind="free", tool="wipe")
+    q0 = _posture(robot, np.asarray(cfg.robot.home, float), [0.45, -0.15, 0.25])
+    holder.plant.reset(q0)
+    cell = holder.open()
+    try:
+        for _ in range(25):  # settle, then zero the residual at rest
+            cell.ticker.wait()
+            guard.detector.update(holder.plant.measured_state())
+        guard.rebias()
+        task = PushTask(robot, holder.plant, q0, speed, push_at, np.asarray(force, float), cycles,
+                        cfg.loop.period_s, state)
+        rec = Recorder(record, 50) if record is not None else None
+        loop = ControlLoop(cell.arm, cell.force, task, SafetyMonitor(cfg.safety, robot, cfg.loop.period_s),
+                           cell.ticker, rec, cfg.loop.period_s, 10.0, guard=guard)
+        result = loop.run()
+        tcp = robot.tcp_pose(holder.plant.measured_state().q).translation
+    finally:
+        holder.close()
+    return result, task, tcp
+
+
+# ----------------------------------------------------------------------------------------- detector
+def test_thresholds_widen_with_speed_sticking_coverage_and_payload(vs, model):
+    guard = _guard(vs, model)
+    d = guard.detector
+    robot = vs["robot"]
+    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    moving = np.full(6, 0.5)
+    base = d.thresholds(q, moving, np.zeros(6))
+    no_stick = _guard(vs, model, stick_speed=0.0).detector
+    band = model.coverage.static_band
+    # At rest the static friction band is added in full (a sticking joint holds anything within it),
+    # fading out toward stick_speed, and nothing of it once the joints move.
+    rest = np.zeros(6)
+    assert np.allclose(d.thresholds(q, rest, rest) - no_stick.thresholds(q, rest, rest), band)
+    slow = np.full(6, d.settings.stick_speed / 2)
+    assert np.allclose(d.thresholds(q, slow, rest) - no_stick.thresholds(q, slow, rest), band / 2)
+    assert np.allclose(base, no_stick.thresholds(q, moving, rest))
+    # Far outside the training data's (q, q', q'') the physics part's level applies: never tighter.
+    far = d.thresholds(q + 2.5, moving * 4, np.full(6, 30.0))
+    assert np.all(far >= d.thresholds(q + 2.5, moving * 4, np.zeros(6)) - 1e-9)
+    assert np.all(d.thresholds(q, moving, np.full(6, 30.0)) >= base)  # accelerating: the inertia term
+    # The payload term counts from where the residual was zeroed: nothing there, more elsewhere.
+    d._q = q
+    d.rebias()
+    q_away = q + np.array([0.0, 0.4, -0.4, 0.0, 0.0, 0.0])
+    d2 = _guard(vs, model, payload_uncertainty_kg=0.0).detector
+    assert np.allclose(d.thresholds(q, moving, np.zeros(6)), d2.thresholds(q, moving, np.zeros(6)))
+    assert d.thresholds(q_away, moving, np.zeros(6))[1] > d2.thresholds(q_away, moving, np.zeros(6))[1] + 0.5
+
+
+def test_free_motion_is_quiet_and_a_push_is_caught_within_three_periods(vs, model):
+    quiet, task, _ = _run(vs, model, _guard(vs, model, reaction="monitor"), speed=0.08, cycles=250)
+    assert quiet.outcome == "done"
+    assert quiet.collision["detections"] == [], quiet.collision
+    assert quiet.collision["max_free_ratio"] < 0.8
+
+    result, task, _ = _run(vs, model, _guard(vs, model), speed=0.08, push_at=60, force=(0.0, -60.0, 0.0))
+    assert result.outcome == "collision", result.reason
+    assert "protective stop" in result.reason and "state move" in result.reason
+    det = result.collision["detections"][0]
+    latency = det["t"] - task.pushed_at_t
+    assert 0 < latency <= 3 * vs["cfg"].loop.period_s + 1e-9, latency
+    assert result.collision["reactions"] == ["stop"]
+
+
+def test_retract_moves_away_along_the_contact_direction_then_stops(vs, model):
+    retract_m = 0.01
+    guard = _guard(vs, model, reaction="retract")
+    guard.cfg = dataclasses.replace(guard.cfg, retract_m=retract_m)
+    result, task, tcp = _run(vs, model, guard, speed=0.0, push_at=40, force=(40.0, 0.0, 0.0))
+    assert result.outcome == "collision", result.reason
+    assert "retracted" in result.reason
+    assert task.aborted  # the task was told why it ended
+    start = vs["robot"].tcp_pose(task.q).translation  # unchanged: the task stopped commanding
+    # The hand pushes the tool along +x: the tool presses -x on it, so the retract yields along +x.
+    moved = tcp - start
+    assert moved[0] > 0.6 * retract_m, moved
+
+
+def test_comply_yields_to_the_push_and_monitor_only_records(vs, model):
+    guard = _guard(vs, model, reaction="comply")
+    result, task, tcp = _run(vs, model, guard, speed=0.0, push_at=40, force=(0.0, 0.0, 40.0))
+    assert result.outcome == "collision" and "complied" in result.reason
+    assert tcp[2] - vs["robot"].tcp_pose(task.q).translation[2] > 0.002
+
+    result, task, _ = _run(vs, model, _guard(vs, model, reaction="monitor"), speed=0.0, push_at=40,
+                           force=(0.0, 0.0, 40.0), cycles=120)
+    assert result.outcome == "done" and not task.aborted
+    assert len(result.collision["detections"]) == 1 and result.collision["reactions"] == ["monitor"]
+
+
+def test_contact_states_hold_the_fast_force_to_the_contact_limit(vs, model):
+    # A steady 40 N push in a state where contact is expected: under a 60 N limit nothing happens ...
+    calm, _, _ = _run(vs, model, _guard(vs, model, contact_states=["move"], limit=60.0), speed=0.0, push_at=30,
+                      force=(0.0, 0.0, 40.0), cycles=120)
+    assert calm.outcome == "done", calm.reason
+    assert 25.0 < calm.collision["max_fast_force_n"] < 60.0
+    # ... under a 25 N limit it is a collision, reported as a force, not as joints.
+    hit, _, _ = _run(vs, model, _guard(vs, model, contact_states=["move"], limit=25.0), speed=0.0, push_at=30,
+                     force=(0.0, 0.0, 40.0), cycles=120)
+    assert hit.outcome == "collision" and "fast tool force" in hit.reason
+    assert hit.collision["detections"][0]["mode"] == "contact"
+
+
+def test_the_recording_says_what_was_detected(vs, model, tmp_path):
+    result, _, _ = _run(vs, model, _guard(vs, model), speed=0.05, push_at=50, force=(0.0, -60.0, 0.0),
+                        record=tmp_path / "run")
+    assert result.outcome == "collision"
+    d = read_log(tmp_path / "run").to_pydict()
+    assert {"coll_ratio", "fast_fx", "fast_fy", "fast_fz"} <= set(d)
+    assert max(d["coll_ratio"]) >= 1.0  # the tripping sample is recorded
+    assert max(d["coll_ratio"][:40]) < 1.0
+
+
+def test_a_non_finite_state_stops_instead_of_passing_silently(vs, model):
+    guard = _guard(vs, model)
+    guard.detector.update(ArmState(t=0.0, q=np.zeros(6), dq=np.zeros(6), tau=np.zeros(6)))
+    bad = ArmState(t=0.0, q=np.zeros(6), dq=np.zeros(6), tau=np.array([0, np.nan, 0, 0, 0, 0.0]))
+    with pytest.raises(SafetyStopError, match="non-finite"):
+        guard.detector.update(bad)
+
+
+# ------------------------------------------------------------------------------------------- config
+@pytest.mark.parametrize("raw, words", [
+    ({"reaction": "explode"}, "reaction"),
+    ({"tasks": {"dance": {}}}, "unknown task 'dance'"),
+    ({"tasks": {"wipe": {"reactions": {"wipe": "flee"}}}}, "unknown reaction 'flee'"),
+    ({"detector": {"observer_gain": 0}}, "observer_gain"),
+    ({"detector": {"floor_nm": [1, 1, 0, 1, 1, 1]}}, "floor_nm"),
+    ({"retract_m": 0.5}, "retract_m"),
+])
+def test_bad_collision_settings_are_one_line_errors(raw, words):
+    with pytest.raises(ConfigError) as err:
+        load_dataclass(CollisionConfig, raw, "cell.yaml: collision")
+    msg = str(err.value)
+    assert words in msg and "\n" not in msg
+
+
+def test_floor_count_must_match_the_joints(vs, model):
+    with pytest.raises(ValueError, match="floor_nm needs 6"):
+        _guard(vs, model, floor_nm=[1.0, 1.0])
+
+
+def test_detector_settings_defaults_are_valid():
+    DetectorSettings().validate("collision.detector")
+
+
+# -------------------------------------------------------------------------------------------- bench
+@pytest.mark.slow
+def test_bench_collision_measures_impacts_and_free_motion(vs, model):
+    from bench.collision import bench_collision
+
+    out = bench_collision(vs["cfg"], vs["robot"], model, impacts=2, seed=3, free_s=4.0, tool="wipe")
+    assert out["impacts"] == 2 and out["free_motion_s"] == pytest.approx(4.0, abs=0.1)
+    for key in ("detection_latency_ms_p95", "peak_force_n_p95", "peak_force_n_max", "false_alarms",
+                "virtual_peak_ratio"):
+        assert key in out
+    for t in out["per_impact"]:
+        if t["contact"]:
+            assert t["peak_force_n"] > 0 and t["ft_peak_n"] > 0
+            assert t["detected"], t
