@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import enum
 import logging
+from collections.abc import Callable
 from typing import Any
 
 from transitions import Machine
@@ -14,6 +15,11 @@ log = logging.getLogger(__name__)
 # contact force leave them out.
 SETUP_STATES = ("move_to_start", "tare")
 
+# A trigger method: `transitions` binds one per transition name onto the model at run time (it returns
+# whether the transition happened).  Subclasses declare theirs as class annotations, never assigned: an
+# attribute that already exists on the model would stop `transitions` from binding the trigger.
+Trigger = Callable[[], bool]
+
 
 class MachineTask:
     """A task whose states are an Enum with DONE and FAILED members; `fail` is allowed from anywhere.
@@ -21,11 +27,13 @@ class MachineTask:
     Subclasses list their forward transitions as (trigger, source, dest) and implement one method
     per state, `_<state value>(obs, ...)`, that the task's `step` dispatches to.  `t_state` is the
     time spent in the current state (reset on entry; the subclass advances it by dt per step).
+    Each trigger is declared in the class body as `name: Trigger` (annotation only) so that it is typed.
     """
 
     name = "task"
     States: type[enum.Enum]
     state_log_level = logging.INFO  # state changes are logged at this level (long data runs: DEBUG)
+    fail: Trigger
 
     def __init__(self, initial: enum.Enum, transitions: list[tuple[str, Any, Any]]) -> None:
         self.state: Any = initial
@@ -55,7 +63,7 @@ class MachineTask:
 
     def fail_because(self, reason: str) -> None:
         self.reason = reason
-        self.fail()  # type: ignore[attr-defined]  # the trigger `transitions` binds to the model
+        self.fail()
 
     def _entered(self) -> None:
         self.t_state = 0.0

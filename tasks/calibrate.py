@@ -62,7 +62,7 @@ from cell.virtual_sensor import (
 from cell.wrench_map import AXES, LEARNED_INPUTS, JacobianMap, LearnedMap, fit_learned_axes
 from drivers.errors import CellError, ConfigError, DataError
 from drivers.interfaces import ArmState
-from tasks.base import MachineTask
+from tasks.base import MachineTask, Trigger
 
 log = logging.getLogger(__name__)
 
@@ -119,6 +119,10 @@ class PostureTask(MachineTask):
     """One posture: move there, rest (free space; re-zero the sensor at the end), loads, release."""
 
     name = "calibrate"
+    moved: Trigger
+    settled: Trigger
+    unloaded: Trigger
+    released: Trigger
     state_log_level = logging.DEBUG  # nine postures of four states each: the progress bar says enough
 
     def __init__(self, q_target: np.ndarray, index: int, robot: RobotModel, dt: float, cal: CalibrationConfig,

@@ -13,7 +13,7 @@ from cell.excitation.plan import Plan
 from cell.loop import Command, Observation
 from cell.robot import RobotModel
 from cell.trajectory import JointMove
-from tasks.base import MachineTask
+from tasks.base import MachineTask, Trigger
 
 log = logging.getLogger(__name__)
 
@@ -31,6 +31,9 @@ class PlaybackTask(MachineTask):
     (-1 while moving to the start and settling), so the step log is a dataset as it is."""
 
     name = "collect"
+    arrived: Trigger
+    played_all: Trigger
+    settled: Trigger
     state_log_level = logging.DEBUG
 
     def __init__(

@@ -14,7 +14,7 @@ from cell.impedance import DiscreteImpedance
 from cell.loop import Command, Observation
 from cell.robot import RobotModel
 from cell.trajectory import JointMove
-from tasks.base import MachineTask
+from tasks.base import MachineTask, Trigger
 from tasks.peg_compliance import comply, regulate, relieve, rotate_upright
 from tasks.peg_config import PegConfig
 from tasks.peg_contact import Contact, classify
@@ -46,6 +46,23 @@ class PegInHoleTask(MachineTask):
     """
 
     name = "peg-in-hole"
+    # the triggers of peg_states.TRANSITIONS
+    arrived: Trigger
+    tared: Trigger
+    surveyed: Trigger
+    touched: Trigger
+    outside: Trigger
+    false_alarm: Trigger
+    backed_off: Trigger
+    inside: Trigger
+    blocked: Trigger
+    upright: Trigger
+    aligned: Trigger
+    stalled: Trigger
+    realigned: Trigger
+    inserted: Trigger
+    released: Trigger
+    retracted: Trigger
 
     def __init__(self, cfg: PegConfig, robot: RobotModel, hole_xy: np.ndarray, hole_top: float, dt: float,
                  q_home: np.ndarray) -> None:

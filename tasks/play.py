@@ -11,7 +11,7 @@ import numpy as np
 from cell.loop import Command, Observation
 from cell.planner import TimedTrajectory
 from cell.trajectory import JointMove
-from tasks.base import MachineTask
+from tasks.base import MachineTask, Trigger
 
 
 class P(enum.Enum):
@@ -40,6 +40,10 @@ class PlayTask(MachineTask):
     """
 
     name = "play"
+    arrived_at_start: Trigger
+    settled: Trigger
+    played: Trigger
+    arrived: Trigger
 
     def __init__(self, traj: TimedTrajectory, dt: float, speed_limits: np.ndarray, cfg: PlayConfig | None = None):
         self.traj = traj

@@ -14,7 +14,7 @@ from cell.impedance import DiscreteImpedance, ImpedanceParams
 from cell.loop import Command, Observation
 from cell.robot import RobotModel
 from cell.trajectory import JointMove, PathProfile, tool_down_pose
-from tasks.base import MachineTask
+from tasks.base import MachineTask, Trigger
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +80,13 @@ class WipeTask(MachineTask):
     """State machine (transitions) for force-controlled wiping; the force comes from the loop's source."""
 
     name = "wipe"
+    arrived: Trigger
+    tared: Trigger
+    touched: Trigger
+    ramped: Trigger
+    settled: Trigger
+    finished: Trigger
+    retracted: Trigger
 
     def __init__(self, cfg: WipeConfig, robot: RobotModel, table_height: float, dt: float, q_home: np.ndarray) -> None:
         self.cfg = cfg
