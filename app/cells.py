@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from cell.config import CellConfig, resolve
+from cell.config import CellConfig, SceneKind, resolve
 from cell.loop import OpenCell
 from cell.robot import RobotModel
 from drivers.errors import ConfigError
@@ -30,7 +30,7 @@ class CellKind:
     """One kind of cell: how to open it, which arm it is, and what it can do besides running tasks."""
 
     name: str
-    open: Callable[[CellConfig, RobotModel, int | None, str | None], CellHolder]  # (cfg, robot, seed, scene)
+    open: Callable[[CellConfig, RobotModel, int | None, SceneKind | None], CellHolder]  # (cfg, robot, seed, scene)
     identity: Callable[[CellConfig, int | None], dict[str, Any]]  # (cfg, seed) -> which arm, for artefacts
     # A task's missing virtual-sensor artefacts are built on the simulated plant on the spot; a real arm's
     # must be made on that arm, by the operator's command.
@@ -64,19 +64,19 @@ class RealCell:
         self.devices.close()
 
 
-def _open_sim(cfg: CellConfig, robot: RobotModel, seed: int | None, scene: str | None) -> CellHolder:
+def _open_sim(cfg: CellConfig, robot: RobotModel, seed: int | None, scene: SceneKind | None) -> CellHolder:
     from sim.cell import make_sim_cell
 
     return make_sim_cell(cfg, robot.limits, seed=seed, scene_kind=scene)
 
 
-def _open_emulated(cfg: CellConfig, robot: RobotModel, seed: int | None, scene: str | None) -> CellHolder:
+def _open_emulated(cfg: CellConfig, robot: RobotModel, seed: int | None, scene: SceneKind | None) -> CellHolder:
     from sim.emulated import EmulatedCell
 
     return EmulatedCell(cfg, robot.limits, seed=seed, scene_kind=scene)
 
 
-def _open_real(cfg: CellConfig, robot: RobotModel, seed: int | None, scene: str | None) -> CellHolder:
+def _open_real(cfg: CellConfig, robot: RobotModel, seed: int | None, scene: SceneKind | None) -> CellHolder:
     return RealCell(cfg, robot)
 
 
@@ -158,7 +158,7 @@ def _kind(kind: str) -> CellKind:
     return found
 
 
-def open_cell(cfg: CellConfig, kind: str, robot: RobotModel, seed: int | None, scene: str | None) -> CellHolder:
+def open_cell(cfg: CellConfig, kind: str, robot: RobotModel, seed: int | None, scene: SceneKind | None) -> CellHolder:
     return _kind(kind).open(cfg, robot, seed, scene)
 
 

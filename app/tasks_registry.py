@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from cell.config import CellConfig, check_home, check_task_force, resolve
+from cell.config import CellConfig, SceneKind, check_home, check_task_force, resolve
 from cell.robot import RobotModel, load_robot
 from drivers.errors import ConfigError
 
@@ -21,7 +21,7 @@ class TaskSpec:
 
     name: str
     tool: str  # the tool mounted: the task's virtual sensor uses that tool's model and calibration
-    scene: str  # the simulated fixture the task works on
+    scene: SceneKind  # the simulated fixture the task works on
     section: str  # its settings: `tasks.<section>` in the cell config
     build: Callable[[CellConfig, RobotModel, str, str], tuple[Any, float]]
 

@@ -41,11 +41,15 @@ class RobotConfig:
         require(0 <= self.tool_mass <= 6.0, f"{where}.tool_mass", "must lie in [0, 6] kg (rated payload)")
 
 
+# The simulated fixtures: none, the wiping table, the peg's hole fixture, the collision bench's plates.
+SceneKind = Literal["free", "table", "peg", "obstacle"]
+
+
 @dataclass
 class SceneConfig:
     """Where the fixtures are, in the robot base frame [m].  The plant builds them; tasks aim at them."""
 
-    kind: Literal["free", "table", "peg", "obstacle"] = "table"  # obstacle: the collision bench's
+    kind: SceneKind = "table"  # obstacle: the collision bench's
     table_height: float = 0.05  # top surface z
     table_center: list[float] = field(default_factory=lambda: [0.45, -0.12])
     table_size: list[float] = field(default_factory=lambda: [0.6, 0.8])

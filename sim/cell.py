@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cell.config import TOOLS, CellConfig, resolve
+from cell.config import TOOLS, CellConfig, SceneKind, resolve
 from cell.force import SensorForceSource
 from cell.loop import OpenCell
 from drivers.errors import ConfigError
@@ -34,7 +34,7 @@ class SimCell:
         self.sensor.disconnect()
 
 
-def make_plant(cfg: CellConfig, seed: int | None = None, scene_kind: str | None = None,
+def make_plant(cfg: CellConfig, seed: int | None = None, scene_kind: SceneKind | None = None,
                tool: str | None = None) -> Plant:
     """The plant with the scene's fixtures; `tool` ("wipe", "peg") mounts that tool whatever the
     scene (default: the peg in the peg scene, the wiping tool elsewhere)."""
@@ -53,7 +53,7 @@ def make_plant(cfg: CellConfig, seed: int | None = None, scene_kind: str | None 
 
 
 def make_sim_cell(
-    cfg: CellConfig, limits: JointLimits, seed: int | None = None, scene_kind: str | None = None,
+    cfg: CellConfig, limits: JointLimits, seed: int | None = None, scene_kind: SceneKind | None = None,
     tool: str | None = None,
 ) -> SimCell:
     plant = make_plant(cfg, seed, scene_kind, tool)

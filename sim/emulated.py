@@ -22,7 +22,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from cell.config import CellConfig, resolve
+from cell.config import CellConfig, SceneKind, resolve
 from cell.force import SensorForceSource
 from cell.loop import OpenCell, WallTicker
 from drivers.errors import ConfigError, DriverError, LinkLostError
@@ -58,7 +58,7 @@ class EmulatedCell:
     """Starts `main.py emulate cell` in a child process, then connects the real drivers to it."""
 
     def __init__(self, cfg: CellConfig, limits: JointLimits, seed: int | None = None,
-                 scene_kind: str | None = None) -> None:
+                 scene_kind: SceneKind | None = None) -> None:
         where = f"{cfg.source}: devices"
         arm_raw = _settings(cfg.devices.arm.settings, _ARM_OWNED, f"{where}.arm.settings")
         sensor_raw = _settings(cfg.devices.sensor.settings, _SENSOR_OWNED, f"{where}.sensor.settings")
@@ -149,7 +149,7 @@ class EmulatedCell:
                     stream.close()
 
 
-def serve_cell(cfg: CellConfig, seed: int | None, scene: str) -> int:
+def serve_cell(cfg: CellConfig, seed: int | None, scene: SceneKind) -> int:
     """`main.py emulate cell`: plant + TM5 emulator + WACOH emulator until stdin closes or says quit."""
     from sim.cell import make_plant
     from sim.tm5_emulator import TM5Emulator
