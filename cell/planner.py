@@ -353,4 +353,6 @@ class UniformScalingPlanner(_Base):
         return traj
 
 
-PLANNERS: dict[str, type[_Base]] = {"toppra": ToppraPlanner, "uniform": UniformScalingPlanner}
+PLANNERS: dict[str, type[ToppraPlanner | UniformScalingPlanner]] = {
+    "toppra": ToppraPlanner, "uniform": UniformScalingPlanner,
+}

@@ -50,30 +50,30 @@ def bench_model(
          [--robot tm5-700] [--json]
     """
     settings = lab_settings(robot)
-    robot = lab_robot(cfg, robot)
+    robot_model = lab_robot(cfg, robot)
     dataset = Path(dataset)
     opts = TrainOptions(nthread=nthread, seed=seed, derivatives="causal", **settings)
     if model_path is not None:
-        loaded = load_model(Path(model_path), robot)
+        loaded = load_model(Path(model_path), robot_model)
         if not isinstance(loaded, LearnedModel):
             raise ConfigError(f"--model {model_path}: a {loaded.meta.kind} model has no learned part to serve")
         model = loaded
         mode = cast(DerivativeMode, str(model.meta.features.get("derivatives", "zero_phase")))
     else:
-        s, sha = load_samples(dataset, "train", robot, "causal", train_samples, seed)
-        fitted = fit_model("H1", robot, s, opts, sha)
+        s, sha = load_samples(dataset, "train", robot_model, "causal", train_samples, seed)
+        fitted = fit_model("H1", robot_model, s, opts, sha)
         assert isinstance(fitted, LearnedModel)
         model = fitted
         mode = "causal"
-    tests, _ = load_samples(dataset, "test", robot, mode)
+    tests, _ = load_samples(dataset, "test", robot_model, mode)
     # --- single sample: the compiled path and the stock path on the same stream of samples
     fast = FastPredictor(model, cfg.loop.period_s)
     stock = FastPredictor(model, cfg.loop.period_s, stock=True)
     n_calls = min(calls, len(tests))
     rows = np.arange(n_calls)
     batch = model.predict(tests.q[rows], tests.dq[rows], tests.ddq[rows], np.array([0]))
-    out_fast = np.empty((n_calls, robot.n))
-    out_stock = np.empty((n_calls, robot.n))
+    out_fast = np.empty((n_calls, robot_model.n))
+    out_stock = np.empty((n_calls, robot_model.n))
 
     # The served sample includes its uncertainty when the model has one (cell/dynamics/uncertainty.py).
     with_sigma = model.coverage is not None
@@ -105,11 +105,11 @@ def bench_model(
     model.predict(tests.q, tests.dq, tests.ddq, tests.starts)
     batch_rate = len(tests) / (time.perf_counter() - t0)
     # --- fitting the XGBoost part on fit_samples samples
-    big, _ = load_samples(dataset, "train", robot, mode, fit_samples, seed)
+    big, _ = load_samples(dataset, "train", robot_model, mode, fit_samples, seed)
     t0 = time.perf_counter()
     physics, load = physics_part(model.kind, model.physics, big.q, big.dq, big.ddq)
     t_phys = time.perf_counter() - t0
-    forest = Forest(model.forest.spec, robot.n)
+    forest = Forest(model.forest.spec, robot_model.n)
     forest.fit(big, big.tau - physics, dataclasses.replace(model.params, nthread=nthread), load)
     t_fast = np.concatenate([t_fast[:n_calls][warm], t_fast[n_calls:][warm]])
     t_stock = t_stock[warm]
@@ -127,7 +127,7 @@ def bench_model(
         "fit_s": round(forest.fit_seconds, 2), "fit_samples": len(big), "fit_physics_s": round(t_phys, 2),
         "fit_trees": forest.trees(), "nthread": nthread,
         "batch_samples_per_s": round(batch_rate, 0), "batch_samples": len(tests),
-        **bench_virtual_sensor(cfg, robot, model, tests, min(calls, 3000)),
+        **bench_virtual_sensor(cfg, robot_model, model, tests, min(calls, 3000)),
     }
 
 
@@ -154,7 +154,8 @@ def bench_virtual_sensor(cfg: CellConfig, robot: RobotModel, model: LearnedModel
     taus = np.array([obs.update(s) for s in states])
     wrench = np.array([jac.map(s.q, t).wrench for s, t in zip(states, taus, strict=True)])
     boosters = fit_learned_axes(stream.q[:n], taus, wrench)
-    maps = {"jacobian": jac, "learned": LearnedMap(boosters, jac, robot.n), "contact": contact_map(vs, robot, R)}
+    maps: dict[str, JacobianMap | LearnedMap] = {"jacobian": jac, "learned": LearnedMap(boosters, jac, robot.n),
+                                                 "contact": contact_map(vs, robot, R)}
     warm = min(50, n // 10)
     out: dict[str, Any] = {}
     for kind in ("kalman", "momentum"):

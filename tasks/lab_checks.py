@@ -63,8 +63,8 @@ def payload_transfer(models: dict[str, Any], loaded: Sequence[Trajectory], filt:
         if isinstance(model, P1Model):
             continue
         errs_with, errs_without, counts = [], [], []
-        for (mass, com), tests in groups.items():
-            loaded_model = with_payload(model, mass, None if com is None else np.asarray(com))
+        for (mass, com_xyz), tests in groups.items():
+            loaded_model = with_payload(model, mass, None if com_xyz is None else np.asarray(com_xyz))
             errs_with.append(j123_rmse(loaded_model, tests))
             errs_without.append(j123_rmse(model, tests))
             counts.append(len(tests))

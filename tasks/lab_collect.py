@@ -77,23 +77,23 @@ def collect(
                           f"import another robot's logs instead (main.py import ur10e)")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    robot = lab_robot(cfg)
+    robot_model = lab_robot(cfg)
     ex = read_excitation_config(str(excitation) if excitation else None)  # a CLI path: relative to the cwd
     ex = dataclasses.replace(ex, seed=ex.seed + seed)
     dt = cfg.loop.period_s
     t0 = time.perf_counter()
-    train_plan = training_plan(robot, cfg, ex, dt, samples, family, fourier_share, slow_share, sweep_share,
+    train_plan = training_plan(robot_model, cfg, ex, dt, samples, family, fourier_share, slow_share, sweep_share,
                                sweep_centre)
     plans: list[tuple[str, Plan]] = [("train", train_plan)]
     if test_trajectories > 0:
-        test_plan = random_moves(robot, cfg, ex, dt, test_trajectories, test_moves, list(ex.speeds),
+        test_plan = random_moves(robot_model, cfg, ex, dt, test_trajectories, test_moves, list(ex.speeds),
                                  repeats=test_repeats, seed=ex.seed + 1000)
         plans.append(("test", test_plan))
     log.info("planned %s in %.1f s", ", ".join(f"{k}: {p.samples} samples" for k, p in plans),
              time.perf_counter() - t0)
     # Moves between the plans are planned now, so a blocked transfer fails before any motion.
     for k in range(1, len(plans)):
-        lead = transfer(plans[k - 1][1].segments[-1].q[-1], plans[k][1].start, robot, cfg, ex, dt)
+        lead = transfer(plans[k - 1][1].segments[-1].q[-1], plans[k][1].start, robot_model, cfg, ex, dt)
         plans[k] = (plans[k][0], Plan(lead + plans[k][1].segments, dt, plans[k][1].info))
     rec_cfg = dataclasses.replace(cfg, recording=dataclasses.replace(
         cfg.recording, directory=str(out_dir / "runs"), chunk_rows=max(cfg.recording.chunk_rows, 5000)))
@@ -103,22 +103,22 @@ def collect(
     try:
         for i, (split, plan) in enumerate(plans):
             if i == 0:
-                lead = transfer(cell.arm.read_state().q, plan.start, robot, cfg, ex, dt)
+                lead = transfer(cell.arm.read_state().q, plan.start, robot_model, cfg, ex, dt)
                 plan = Plan(lead + plan.segments, dt, plan.info)
-            res = _play(plan, split, cell, rec_cfg, robot)
+            res = _play(plan, split, cell, rec_cfg, robot_model)
             results[split] = res
             raise_if_interrupted(res["outcome"])
             if res["outcome"] != "done":
                 raise DataError(f"collect {split}: the run ended '{res['outcome']}' ({res['reason']}); "
                                 f"recording kept in {res['run_dir']}")
-            table = _dataset_table(Path(res["run_dir"]), robot.n)
+            table = _dataset_table(Path(res["run_dir"]), robot_model.n)
             pq.write_table(table, out_dir / f"{split}.parquet")
             res["rows"] = table.num_rows
     finally:
         holder.close()
     manifest = {
         "description": f"{family} training family, random point-to-point test family; cell {cfg.source or 'default'}",
-        "robot": robot.model.name, "joints": robot.n, "period_s": dt,
+        "robot": robot_model.model.name, "joints": robot_model.n, "period_s": dt,
         "train": ["train.parquet"], "test": ["test.parquet"] if "test" in results else [],
     }
     (out_dir / "dataset.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))

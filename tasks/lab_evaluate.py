@@ -91,12 +91,13 @@ def evaluate(
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
     robot_name = robot
-    robot = lab_robot(cfg, robot_name)
+    robot_model = lab_robot(cfg, robot_name)
     opts = TrainOptions(nthread=nthread, seed=seed, max_trees=max_trees, **lab_settings(robot_name))
     dataset = Path(dataset)
-    everything, sha = load_samples(dataset, "train", robot)
+    everything, sha = load_samples(dataset, "train", robot_model)
     man = load_manifest(dataset)
-    tests = [stack([t], "zero_phase", man.filter) for t in load_split(dataset, "test", robot.n, robot.model.name)]
+    tests = [stack([t], "zero_phase", man.filter)
+             for t in load_split(dataset, "test", robot_model.n, robot_model.model.name)]
     small = subsample_segments(everything, train_samples, seed)
     large = subsample_segments(everything, large_samples, seed)
     log.info("evaluate: %d training samples available, %d test trajectories (%d samples)",
@@ -116,7 +117,7 @@ def evaluate(
         data = large if name == "D_large" else small
         spec = PAPER_FEATURES if name.endswith("_paper") else None
         o = dataclasses.replace(opts, h2_rigid="identified") if name == "H2_identified" else opts
-        model = fit_model(kind, robot, data, o, sha, p2=p2_small if data is small else None, spec=spec)
+        model = fit_model(kind, robot_model, data, o, sha, p2=p2_small if data is small else None, spec=spec)
         if name == "P2":
             assert isinstance(model, P2Model)
             p2_small = model
@@ -136,9 +137,9 @@ def evaluate(
     curve_out: dict[str, list[dict[str, float]]] = {"D": [], "H1": []}
     for size in tqdm([int(c) for c in (curve or []) if int(c) <= len(everything)], desc="learning curve", unit="size"):
         sub = subsample_segments(everything, size, seed)
-        p2 = identify_p2(robot, sub.q, sub.dq, sub.ddq, sub.tau, opts.identification, sha)
+        p2 = identify_p2(robot_model, sub.q, sub.dq, sub.ddq, sub.tau, opts.identification, sha)
         for kind in ("D", "H1"):
-            m = fit_model(kind, robot, sub, opts, sha, p2=p2)
+            m = fit_model(kind, robot_model, sub, opts, sha, p2=p2)
             rmse, _ = trajectory_errors(m, tests)
             curve_out[kind].append({"samples": len(sub), "rmse_j123": round(float(np.mean(rmse[:, :3])), 4)})
 
@@ -169,17 +170,17 @@ def evaluate(
     summary["regimes"] = regime_errors({k: models[k] for k in six}, tests)
     summary["uncertainty"] = {k: uncertainty_report(models[k], tests) for k in ("H1", "H2", "H3")}
     if man.loaded:
-        loaded = load_split(dataset, "loaded", robot.n, robot.model.name)
+        loaded = load_split(dataset, "loaded", robot_model.n, robot_model.model.name)
         summary["payload_transfer"] = payload_transfer(
             {k: models[k] for k in ("P2", "H1", "H2", "H3")}, loaded, man.filter)
     if lofo:
         def fit_fold(trajs: list[Trajectory]) -> dict[str, Any]:
             s_all = stack(trajs, "zero_phase", man.filter)
             sub = subsample_segments(s_all, train_samples, seed)
-            p2 = identify_p2(robot, sub.q, sub.dq, sub.ddq, sub.tau, opts.identification, sha)
-            return {"P1": models["P1"], "P2": p2, "H1": fit_model("H1", robot, sub, opts, sha, p2=p2)}
+            p2 = identify_p2(robot_model, sub.q, sub.dq, sub.ddq, sub.tau, opts.identification, sha)
+            return {"P1": models["P1"], "P2": p2, "H1": fit_model("H1", robot_model, sub, opts, sha, p2=p2)}
 
-        summary["leave_one_file_out"] = leave_one_file_out(manifest_files(dataset, "train"), fit_fold, robot.n,
+        summary["leave_one_file_out"] = leave_one_file_out(manifest_files(dataset, "train"), fit_fold, robot_model.n,
                                                            man.filter, man.max_gap_s)
     summary["wall_s"] = round(time.perf_counter() - t_start, 1)
     (out_dir / "evaluation.json").write_text(dumps_strict(summary, indent=2))

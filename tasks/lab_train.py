@@ -149,12 +149,12 @@ def train(
     if derivatives not in ("zero_phase", "causal"):
         raise ConfigError(f"--derivatives {derivatives}: unknown (zero_phase or causal)")
     settings = lab_settings(robot)
-    robot = lab_robot(cfg, robot)
+    robot_model = lab_robot(cfg, robot)
     opts = TrainOptions(derivatives=cast(DerivativeMode, derivatives), nthread=nthread, seed=seed, **settings)
     opts = opts.override(window=window, grouping=grouping)
     t0 = time.perf_counter()
-    s, sha = load_samples(Path(dataset), "train", robot, opts.derivatives, samples, seed)
-    model = fit_model(kind, robot, s, opts, sha)
+    s, sha = load_samples(Path(dataset), "train", robot_model, opts.derivatives, samples, seed)
+    model = fit_model(kind, robot_model, s, opts, sha)
     fit_s = time.perf_counter() - t0
     pred = model.predict(s.q, s.dq, s.ddq, s.starts)
     rmse = np.sqrt(np.nanmean((pred - s.tau) ** 2, axis=0))
