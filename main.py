@@ -8,12 +8,22 @@ import sys
 from pathlib import Path
 
 from app.cells import CALIBRATION_KINDS, CELL_KINDS
-from app.commands_bench import BENCH_NAMES, cmd_bench
+from app.commands_bench import (
+    BENCH_NAMES,
+    COLLISION_FREE_S,
+    COLLISION_IMPACTS,
+    PEG_MAX_OFFSET_MM,
+    PEG_MAX_TILT_DEG,
+    PEG_TRIALS,
+    cmd_bench,
+)
 from app.commands_cell import cmd_emulate, cmd_run, cmd_status
+from app.commands_figures import cmd_figures
 from app.commands_lab import cmd_calibrate, cmd_collect, cmd_evaluate, cmd_import, cmd_prepare, cmd_train
 from app.commands_plan import cmd_plan
 from app.sensing import FORCE_SOURCES, PREPARE_SAMPLES
 from app.tasks_registry import TASK_NAMES
+from bench.figures import BENCH_DIR, FIGURES_PAGE
 from cell.cliargs import COUNT, NTHREAD, PORT, SEED, float_in, int_in, int_list
 from cell.config import CONFIG_DIR, REACTIONS, TOOLS
 from cell.signals import Terminated, received_sigterm, sigterm_as_interrupt
@@ -155,10 +165,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="benchmarks that print the project's measured figures")
     b.add_argument("what", choices=BENCH_NAMES)
-    b.add_argument("--trials", type=COUNT, default=50, help="randomised insertions (bench peg-in-hole)")
-    b.add_argument("--max-offset-mm", type=float_in(0, 20), default=2.0,
+    b.add_argument("--trials", type=COUNT, default=PEG_TRIALS, help="randomised insertions (bench peg-in-hole)")
+    b.add_argument("--max-offset-mm", type=float_in(0, 20), default=PEG_MAX_OFFSET_MM,
                    help="hole offset drawn in +-this on x and y (bench peg-in-hole)")
-    b.add_argument("--max-tilt-deg", type=float_in(0, 10), default=2.0,
+    b.add_argument("--max-tilt-deg", type=float_in(0, 10), default=PEG_MAX_TILT_DEG,
                    help="hole tilt drawn in +-this about x and y (bench peg-in-hole)")
     b.add_argument("--peg-diameter-mm", type=float_in(1, 100, lo_open=True), default=None,
                    help="peg diameter (bench peg-in-hole; default: the plant profile's, 21.4)")
@@ -168,8 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bench peg-in-hole: run only these trial numbers (the same draws as in the full bench)")
     b.add_argument("--record", action="store_true",
                    help="bench peg-in-hole: log every trial run (runs/<date>-bench-peg/trial_NNN, as `run` logs)")
-    b.add_argument("--impacts", type=COUNT, default=40, help="scripted impacts (bench collision)")
-    b.add_argument("--free-s", type=float_in(0, 3600), default=600.0,
+    b.add_argument("--impacts", type=COUNT, default=COLLISION_IMPACTS, help="scripted impacts (bench collision)")
+    b.add_argument("--free-s", type=float_in(0, 3600), default=COLLISION_FREE_S,
                    help="simulated seconds of free motion for false alarms (bench collision)")
     b.add_argument("--reaction", choices=REACTIONS, default="stop", help="bench collision: the reaction to impacts")
     b.add_argument("--n", type=COUNT, default=500, help="samples (bench drivers)")
@@ -185,6 +195,12 @@ def build_parser() -> argparse.ArgumentParser:
     robot_option(b, "bench model: the dataset's ")
     common(b)
     b.set_defaults(func=cmd_bench)
+
+    fi = sub.add_parser("figures", help="write docs/figures.md from the benchmarks' saved JSON summaries")
+    fi.add_argument("--bench-dir", type=Path, default=BENCH_DIR, help=f"saved summaries (default {BENCH_DIR})")
+    fi.add_argument("--out", type=Path, default=FIGURES_PAGE, help=f"the page to write (default {FIGURES_PAGE})")
+    fi.add_argument("--json", action="store_true", help="print one JSON object as the last stdout line")
+    fi.set_defaults(func=cmd_figures)
     return p
 
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from app.common import emit, load_cell_config
+from app.common import emit, load_cell_config, save_bench_summary
 from app.sensing import ensure_virtual_artefacts, make_force_source, with_guard
 from app.tasks_registry import robot_for
 from cell.config import load_config
@@ -19,12 +19,55 @@ from drivers.errors import ConfigError
 log = logging.getLogger("tmcell")
 
 
+# Defaults of the options that change a bench's figures (main.py's parser uses them): a run that departs from
+# one saves its summary under a tagged name (`summary_name`), so it never overwrites the default's figures.
+PEG_TRIALS = 50
+PEG_MAX_OFFSET_MM = 2.0
+PEG_MAX_TILT_DEG = 2.0
+COLLISION_IMPACTS = 40
+COLLISION_FREE_S = 600.0
+
+
+def _no_tags(args: argparse.Namespace) -> list[str]:
+    return []
+
+
+def _peg_tags(args: argparse.Namespace) -> list[str]:
+    tags = ["sensor"] if args.force_source == "sensor" else []
+    if args.peg_diameter_mm:
+        tags.append(f"d{args.peg_diameter_mm:g}mm")
+    if args.trials != PEG_TRIALS:
+        tags.append(f"{args.trials}trials")
+    if args.max_offset_mm != PEG_MAX_OFFSET_MM:
+        tags.append(f"offset{args.max_offset_mm:g}mm")
+    if args.max_tilt_deg != PEG_MAX_TILT_DEG:
+        tags.append(f"tilt{args.max_tilt_deg:g}deg")
+    if args.only:
+        tags.append("only" + "_".join(str(k) for k in args.only))
+    return tags
+
+
+def _collision_tags(args: argparse.Namespace) -> list[str]:
+    tags = [args.reaction] if args.reaction != "stop" else []
+    if args.impacts != COLLISION_IMPACTS:
+        tags.append(f"{args.impacts}impacts")
+    if args.free_s != COLLISION_FREE_S:
+        tags.append(f"free{args.free_s:g}s")
+    return tags
+
+
+def _model_tags(args: argparse.Namespace) -> list[str]:
+    return [args.robot] if args.robot != "tm5-700" else []
+
+
 @dataclass(frozen=True)
 class Bench:
-    """One benchmark: `run(args)` -> its summary; `passed(summary)` false makes the command exit 1."""
+    """One benchmark: `run(args)` -> its summary; `passed(summary)` false makes the command exit 1; `tags(args)`
+    name the options that change its figures (in the saved summary's name)."""
 
     run: Callable[[argparse.Namespace], dict[str, Any]]
     passed: Callable[[dict[str, Any]], bool] = lambda out: True
+    tags: Callable[[argparse.Namespace], list[str]] = _no_tags
 
 
 def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
@@ -110,11 +153,12 @@ BENCHES: dict[str, Bench] = {
     "sim": Bench(_bench_sim),
     "plant": Bench(_bench_plant),
     "drivers": Bench(_bench_drivers),
-    "model": Bench(_bench_model),
-    "peg-in-hole": Bench(bench_peg_in_hole),
+    "model": Bench(_bench_model, tags=_model_tags),
+    "peg-in-hole": Bench(bench_peg_in_hole, tags=_peg_tags),
     "faults": Bench(_bench_faults, passed=lambda out: out["failures"] == 0),
     # Exit 1 when an impact went undetected or free motion raised an alarm.
-    "collision": Bench(_bench_collision, passed=lambda out: not out["missed"] and out["false_alarms"] == 0),
+    "collision": Bench(_bench_collision, passed=lambda out: not out["missed"] and out["false_alarms"] == 0,
+                       tags=_collision_tags),
 }
 BENCH_NAMES = tuple(BENCHES)
 
@@ -125,4 +169,5 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise ConfigError(f"bench {args.what}: unknown benchmark")
     out = chosen.run(args)
     emit(out, args.json)
+    save_bench_summary(out, args.what, chosen.tags(args), args)
     return 0 if chosen.passed(out) else 1

@@ -7,7 +7,7 @@ import argparse
 import numpy as np
 
 from app.cells import cell_kind, open_cell
-from app.common import emit, load_cell_config
+from app.common import emit, load_cell_config, save_bench_summary
 from app.sensing import ensure_virtual_artefacts, make_force_source, with_guard
 from app.tasks_registry import TASKS, build_task, robot_for
 from cell.config import load_config
@@ -34,7 +34,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     emit(summary, args.json)
     if summary["outcome"] == "interrupted":
         return 130
+    save_bench_summary(summary, f"run-{args.task}", run_tags(kind, args.force_source), args)
     return 0 if summary["outcome"] == "done" else 1
+
+
+def run_tags(kind: str, force_source: str) -> list[str]:
+    """The tags of a run's saved summary (`run-<task>[-<cell>][-sensor]`): the simulated cell and the virtual
+    sensor are the defaults."""
+    return ([kind] if kind != "sim" else []) + (["sensor"] if force_source == "sensor" else [])
 
 
 def cmd_status(args: argparse.Namespace) -> int:

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from app.cells import cell_kind, open_cell
-from app.common import emit
+from app.common import emit, save_bench_summary
 from app.sensing import with_guard
 from app.tasks_registry import robot_for
 from cell.config import CellConfig, load_config
@@ -74,4 +74,6 @@ def cmd_plan(args: argparse.Namespace) -> int:
     out = run_plans(cfg, robot, predictor, model_name, plan_file, open_for_plan, collisions,
                     Path(cfg.recording.directory) / "plans", only, terms)
     emit(out, args.json)
+    tags = (["waypoints"] if args.waypoints else []) + [f"path-{name}" for name in only or []]
+    save_bench_summary(out, "plan", tags, args)
     return 0

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from bench.figures import save_summary, summary_name
 from cell.config import CellConfig, load_config
 from cell.configio import dumps_strict
+
+log = logging.getLogger("tmcell")
 
 
 def load_cell_config(args: argparse.Namespace) -> CellConfig:
@@ -34,3 +39,16 @@ def emit(out: dict[str, Any], as_json: bool) -> None:
 
 def _fmt(v: Any) -> str:
     return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def save_bench_summary(out: dict[str, Any], what: str, tags: Sequence[str], args: argparse.Namespace) -> None:
+    """Save a command's summary for `main.py figures` (artifacts/bench/<what>[-tags][-seed<S>].json); the
+    command's own result stands whether or not this works, so a failure is a warning."""
+    plant = getattr(args, "plant", None)
+    name = summary_name(what, [*tags, *([f"plant-{Path(plant).stem}"] if plant else [])], args.seed)
+    try:
+        path = save_summary(out, name)
+    except (OSError, ValueError) as exc:
+        log.warning("could not save the summary as %s.json: %s", name, exc)
+        return
+    log.info("summary saved to %s", path)
