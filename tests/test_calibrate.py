@@ -18,13 +18,18 @@ from cell.recorder import read_log
 from cell.virtual_sensor import build_virtual_source
 from drivers.errors import ConfigError, DataError
 from main import main
-from tasks.calibrate import OperatorLoads, artefacts_missing, calibrate, error_split, prepare
+from tasks.calibrate import LoadApplier, OperatorLoads, artefacts_missing, calibrate, error_split, prepare
 from tests.vsfixtures import artefacts
 
 
 @pytest.fixture(scope="module")
 def vs():
     return artefacts()
+
+
+def no_applier(holder: object) -> LoadApplier:
+    """For the runs that must stop before any load is applied."""
+    raise AssertionError("a load applier was asked for")
 
 
 def test_calibration_reports_every_route_on_held_out_postures(vs):
@@ -65,7 +70,7 @@ def test_prepare_skips_what_is_present_and_matching(vs):
     def must_not_open():
         raise AssertionError("prepare opened a cell although everything was in place")
 
-    out = prepare(cfg, "wipe", robot, must_not_open, must_not_open, lambda h: None)
+    out = prepare(cfg, "wipe", robot, must_not_open, must_not_open, no_applier)
     assert not any(step["done"] for step in out["steps"].values()), out["steps"]
 
 
@@ -80,7 +85,7 @@ def test_prepare_collects_again_a_dataset_without_the_working_posture_sweeps(vs)
 
     # The fixture's dataset was collected without a working posture: with one, prepare collects anew.
     with pytest.raises(Opened):
-        prepare(cfg, "wipe", robot, opener, opener, lambda h: None, working_posture=np.asarray(cfg.robot.home))
+        prepare(cfg, "wipe", robot, opener, opener, no_applier, working_posture=np.asarray(cfg.robot.home))
 
 
 def _copy_calibration(vs, tmp_path):
@@ -130,8 +135,13 @@ def test_real_cell_without_artefacts_is_refused_naming_prepare(capsys):
 
 
 def test_the_real_cell_asks_the_operator_on_the_cli():
-    asked = []
-    loads = OperatorLoads(prompt=lambda text: asked.append(text) or "")
+    asked: list[str] = []
+
+    def prompt(text: str) -> str:
+        asked.append(text)
+        return ""
+
+    loads = OperatorLoads(prompt=prompt)
     loads.before_posture(2, 9, 20.0)
     assert len(asked) == 1 and "posture 3/9" in asked[0] and "20 s" in asked[0]
     # The operator pushes when the task says so (after the rest's re-zero), whatever settle_s is.
@@ -185,7 +195,7 @@ def test_a_rest_shorter_than_the_rebias_window_is_refused_before_the_cell_opens(
         raise AssertionError("calibrate opened a cell with an impossible rest")
 
     with pytest.raises(ConfigError, match=r"virtual_sensor.calibration.settle_s \(0.2 s\) must exceed rebias_window_s"):
-        calibrate(cfg, "wipe", vs["robot"], must_not_open, lambda h: None)
+        calibrate(cfg, "wipe", vs["robot"], must_not_open, no_applier)
 
 
 def test_a_config_whose_rest_is_shorter_than_the_rebias_window_is_refused_at_load(tmp_path):

@@ -30,6 +30,12 @@ def sine_traj(n: int = 6, samples: int = 600, seed: int = 0, with_dq: bool = Tru
     return Trajectory("x", t, q, tau, dq if with_dq else None, segment=(np.arange(samples) // 100))
 
 
+def dq_of(traj: Trajectory) -> np.ndarray:
+    """The velocities of a trajectory that has them."""
+    assert traj.dq is not None
+    return traj.dq
+
+
 def table_of(traj: Trajectory) -> dict[str, np.ndarray]:
     cols: dict[str, np.ndarray] = {"t": traj.t}
     for i in range(traj.n):
@@ -50,7 +56,7 @@ def test_valid_file_loads_with_and_without_dq(tmp_path):
     write_trajectory(tmp_path / "a.parquet", tr)
     (loaded,) = load_trajectories(tmp_path / "a.parquet", 6)
     np.testing.assert_allclose(loaded.q, tr.q)
-    np.testing.assert_allclose(loaded.dq, tr.dq)
+    np.testing.assert_allclose(dq_of(loaded), dq_of(tr))
     write(tmp_path / "b.parquet", table_of(tr))
     (no_dq,) = load_trajectories(tmp_path / "b.parquet", 6)
     assert no_dq.dq is None
@@ -129,7 +135,7 @@ def test_control_loop_step_log_is_a_dataset(tmp_path):
     for k in range(100):
         row = {"t": k * DT, "cycle": k, "state": "play"}
         row.update({f"q{i + 1}": float(tr.q[k, i]) for i in range(6)})
-        row.update({f"dq{i + 1}": float(tr.dq[k, i]) for i in range(6)})
+        row.update({f"dq{i + 1}": float(dq_of(tr)[k, i]) for i in range(6)})
         row.update({f"tau{i + 1}": float(tr.tau[k, i]) for i in range(6)})
         row.update({f"q_cmd{i + 1}": 0.0 for i in range(6)})
         row.update(clipped=False, fx=0.0, fz=1.0, compute_ms=0.1, traj=0.0, segment=float(k // 50))
@@ -175,7 +181,7 @@ def test_causal_pipeline_batch_equals_per_sample_and_lags_a_little():
     v_batch, a_batch = c.run(tr.q, tr.dq)
     c2 = CausalDerivatives(6, DT, FilterConfig(cutoff_hz=20.0))
     for k in range(len(tr)):
-        v, a = c2.step(tr.q[k], tr.dq[k])
+        v, a = c2.step(tr.q[k], dq_of(tr)[k])
         np.testing.assert_array_equal(v, v_batch[k])
         np.testing.assert_array_equal(a, a_batch[k])
     _, a_zero = zero_phase_derivatives(tr.t, tr.q, tr.dq)
@@ -187,7 +193,7 @@ def test_causal_pipeline_batch_equals_per_sample_and_lags_a_little():
 def test_causal_from_positions_only():
     tr = sine_traj(samples=400, with_dq=False)
     v, _ = CausalDerivatives(6, DT).run(tr.q, None)
-    truth = sine_traj(samples=400).dq
+    truth = dq_of(sine_traj(samples=400))
     assert np.sqrt(np.mean((v[50:] - truth[50:]) ** 2)) < 0.15 * np.sqrt(np.mean(truth**2))
 
 

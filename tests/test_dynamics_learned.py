@@ -138,7 +138,7 @@ def test_window_buffer_equals_batch_features():
 # ------------------------------------------------------------------------------------------ models
 def test_hybrid_learns_what_physics_misses(robot_module, fitted):
     s, p2, h1, d = fitted
-    assert isinstance(h1, TorqueModel)
+    assert isinstance(h1, TorqueModel) and isinstance(h1, LearnedModel)
     test = motion(3000, 11, trajs=2)
     truth = plant_like_torque(robot_module, test)
     err_p2 = np.sqrt(np.mean((p2.predict(test.q, test.dq, test.ddq) - truth)[:, :3] ** 2))

@@ -58,6 +58,7 @@ def test_link_dropped_mid_task_stops_within_two_periods_and_recovers(emulated, c
     assert rec.closed and read_log(tmp_path / "run").num_rows == result.cycles
     assert "driver fault" in inj.task.aborted
     # The emulator comes back: the driver reconnects and the arm can be re-armed.
+    assert inj.t_inject is not None
     time.sleep(max(0.0, 1.6 - (t_end - inj.t_inject)))
     emulated.arm.arm()
     assert emulated.arm.lifecycle is Lifecycle.ARMED

@@ -178,7 +178,7 @@ def test_playback_task_moves_to_start_plays_every_sample_and_labels_rows(robot, 
     played, k = [], 0
     while not task.done:
         cmd = task.step(_obs(q, k))
-        if cmd.log["traj"] >= 0:
+        if float(cmd.log["traj"]) >= 0:
             played.append(cmd.q)
         q = cmd.q
         k += 1

@@ -356,14 +356,14 @@ def test_upright_on_the_wall_the_peg_steps_onto_the_axis_gradually_before_feedin
     task._centre_left = (pc.hole_diameter_m - pc.peg_diameter_m) / 2
     task.depth = 0.001
     start = task.ref.translation.copy()
-    steps = []
+    deltas = []
     for _ in range(200):
         before = task.ref.translation.copy()
         task._insert(None, 0.0, 0.0, 0.0)
-        steps.append(task.ref.translation - before)
+        deltas.append(task.ref.translation - before)
         if task._centre_left <= 0:
             break
-    steps = np.array(steps)
+    steps = np.array(deltas)
     assert np.all(np.abs(steps[:, 0]) <= pc.centre_speed_mps * dt + 1e-12)
     assert np.allclose(steps[:, 1:], 0.0)  # no feed while stepping off the wall
     assert task.ref.translation[0] - start[0] == pytest.approx(0.0002)  # off the lead wall by the clearance

@@ -67,7 +67,9 @@ def test_finite_json_replaces_every_non_finite_number_by_none():
     assert out["np_int"] == 7 and type(out["np_int"]) is int
     assert out["np_bool"] is False
     # The input is not modified.
-    assert math.isnan(REPORT["rmse"]) and np.isnan(REPORT["array"][0, 1])
+    rmse, array = REPORT["rmse"], REPORT["array"]
+    assert isinstance(rmse, float) and math.isnan(rmse)
+    assert isinstance(array, np.ndarray) and np.isnan(array[0, 1])
 
 
 def walk(obj):

@@ -43,7 +43,7 @@ def _drive(holder, targets, sources, hand=None, wrench=None):
     """Send joint targets one period at a time; every source reads every sample.  Returns per source
     the (N, 6) estimates and the (N, 6) true sensor wrench (tool frame, tared by the caller)."""
     plant = holder.plant
-    est = {k: [] for k in sources}
+    est: dict[str, list[np.ndarray]] = {k: [] for k in sources}
     truth = []
     if hand is not None:
         hand.set_tool_wrench(wrench) if wrench is not None else hand.release()
@@ -100,8 +100,8 @@ def test_singular_pose_is_flagged_and_stays_bounded(robot):
     for m in (sing, near):
         assert np.all(np.isfinite(m.wrench)) and np.linalg.norm(m.wrench) < 25.0
     # Near (not at) the singularity the damping fades in smoothly: no jump between neighbours.
-    near = [jac.map(np.array([0.1, 0.2, 1.5, 0.1, a, 0.2]), tau).wrench for a in (0.02, 0.021)]
-    assert np.linalg.norm(near[0] - near[1]) < 5.0
+    pair = [jac.map(np.array([0.1, 0.2, 1.5, 0.1, a, 0.2]), tau).wrench for a in (0.02, 0.021)]
+    assert np.linalg.norm(pair[0] - pair[1]) < 5.0
 
 
 def _contact_map(robot, free_moment_nm):

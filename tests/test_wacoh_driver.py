@@ -189,7 +189,7 @@ class ScriptedPort:
 def scripted_sensor(replies: list[bytes]) -> tuple[WacohSensor, ScriptedPort]:
     sensor = WacohSensor(WacohConfig(port="scripted", sensitivities=FALLBACK, timeout_s=0.002))
     port = ScriptedPort(replies)
-    sensor._link.ser = port  # type: ignore[assignment]
+    sensor._link.ser = port
     return sensor, port
 
 
