@@ -58,6 +58,8 @@ FIGURES: tuple[F, ...] = (
     F("wipe, virtual sensor: virtual vs F/T Fz MAE (N)", "run-wipe", "virtual_vs_sensor_fz_mae_n",
       "<= 3 (paper 7.995)", "main.py run wipe --json"),
     F("wipe, virtual sensor: force MAE (N)", "run-wipe", "force_mae_n", "<= 4", "main.py run wipe --json"),
+    F("wipe over the wire, F/T sensor: outcome", "run-wipe-emulated-sensor", "outcome", "done",
+      "main.py run wipe --cell emulated --force-source sensor --json"),
     F("wipe over the wire, F/T sensor: force MAE (N)", "run-wipe-emulated-sensor", "force_mae_n", "<= 2",
       "main.py run wipe --cell emulated --force-source sensor --json"),
     # the virtual sensor against the F/T sensor, held-out postures
