@@ -14,21 +14,21 @@ from cell.impedance import DiscreteImpedance
 from cell.loop import Command, Observation
 from cell.robot import RobotModel
 from cell.trajectory import JointMove
-from tasks.base import MachineTask, Trigger
+from tasks.base import MachineTask
 from tasks.peg_compliance import comply, regulate, relieve, rotate_upright
 from tasks.peg_config import PegConfig
 from tasks.peg_contact import Contact, classify
 from tasks.peg_geometry import Segment, entry_pose, on_segments, rim_points, tilt_angle, tilt_of, wall_pivot
 from tasks.peg_scoring import wrench_errors
 from tasks.peg_search import WallSearch, plan_back_off
-from tasks.peg_states import TRANSITIONS, S
+from tasks.peg_states import TRANSITIONS, PegTriggers, S
 from tasks.peg_survey import Survey, fit_face, hole_frame
 from tasks.peg_touch import GuardedDescent
 
 log = logging.getLogger(__name__)
 
 
-class PegInHoleTask(MachineTask):
+class PegInHoleTask(MachineTask, PegTriggers):
     """The peg-in-hole strategy as a `transitions` machine; the wrench comes from the loop's force source.
 
     Survey first: the fixture's top face is square to the hole, so touching it with the tilted peg's lowest
@@ -46,23 +46,6 @@ class PegInHoleTask(MachineTask):
     """
 
     name = "peg-in-hole"
-    # the triggers of peg_states.TRANSITIONS
-    arrived: Trigger
-    tared: Trigger
-    surveyed: Trigger
-    touched: Trigger
-    outside: Trigger
-    false_alarm: Trigger
-    backed_off: Trigger
-    inside: Trigger
-    blocked: Trigger
-    upright: Trigger
-    aligned: Trigger
-    stalled: Trigger
-    realigned: Trigger
-    inserted: Trigger
-    released: Trigger
-    retracted: Trigger
 
     def __init__(self, cfg: PegConfig, robot: RobotModel, hole_xy: np.ndarray, hole_top: float, dt: float,
                  q_home: np.ndarray) -> None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import enum
 from typing import Any
 
+from tasks.base import Trigger
+
 
 class S(enum.Enum):
     MOVE_TO_START = "move_to_start"
@@ -42,6 +44,28 @@ TRANSITIONS: list[tuple[str, Any, Any]] = [
     ("released", S.RELEASE, S.RETRACT),
     ("retracted", S.RETRACT, S.DONE),
 ]
+
+
+class PegTriggers:
+    """The triggers of TRANSITIONS, declared for the type checker; `transitions` binds them at run time."""
+
+    arrived: Trigger
+    tared: Trigger
+    surveyed: Trigger
+    touched: Trigger
+    outside: Trigger
+    false_alarm: Trigger
+    backed_off: Trigger
+    inside: Trigger
+    blocked: Trigger
+    upright: Trigger
+    aligned: Trigger
+    stalled: Trigger
+    realigned: Trigger
+    inserted: Trigger
+    released: Trigger
+    retracted: Trigger
+
 
 # The states from the first approach to the end of the insertion: the wrench errors are scored over these.
 INSERTION_STATES = (S.APPROACH.value, S.PROBE.value, S.BACK_OFF.value, S.SLIDE.value, S.ROTATE.value,
