@@ -21,8 +21,10 @@ from app.commands_cell import cmd_emulate, cmd_run, cmd_status
 from app.commands_figures import cmd_figures
 from app.commands_lab import cmd_calibrate, cmd_collect, cmd_evaluate, cmd_import, cmd_prepare, cmd_train
 from app.commands_plan import cmd_plan
+from app.commands_replay import cmd_replay
 from app.sensing import FORCE_SOURCES, PREPARE_SAMPLES
 from app.tasks_registry import TASK_NAMES
+from app.view import add_view_options
 from bench.figures import BENCH_DIR, FIGURES_PAGE
 from cell.cliargs import COUNT, NTHREAD, PORT, SEED, float_in, int_in, int_list
 from cell.config import CONFIG_DIR, REACTIONS, TOOLS
@@ -54,6 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="virtual (default): the virtual force sensor, the F/T sensor logged as ground truth")
     run.add_argument("--plant", default=None, help="plant profile YAML (sim cells)")
     run.add_argument("--no-record", action="store_true", help="do not write runs/<...>/")
+    add_view_options(run, "the run as it happens")
     common(run)
     run.set_defaults(func=cmd_run)
 
@@ -195,6 +198,18 @@ def build_parser() -> argparse.ArgumentParser:
     robot_option(b, "bench model: the dataset's ")
     common(b)
     b.set_defaults(func=cmd_bench)
+
+    rp = sub.add_parser("replay", help="the virtual sensor again over a recorded run's joint data, scored as the run")
+    rp.add_argument("run_dir", help="a recorded run (runs/<time>-<task>/)")
+    rp.add_argument("--observer", choices=("kalman", "momentum"), default=None, help="default: the run's config")
+    rp.add_argument("--mapping", choices=("jacobian", "learned", "contact"), default=None,
+                    help="default: the run's config")
+    rp.add_argument("--model", default=None, help="torque model artefact (default: the run config's)")
+    rp.add_argument("--calibration", default=None, help="calibration folder (default: the run config's)")
+    rp.add_argument("--config", type=Path, default=None, help="cell config (default: the run's config.yaml)")
+    add_view_options(rp, "the recording and the replayed wrench")
+    rp.add_argument("--json", action="store_true", help="print one JSON object as the last stdout line")
+    rp.set_defaults(func=cmd_replay)
 
     fi = sub.add_parser("figures", help="write docs/figures.md from the benchmarks' saved JSON summaries")
     fi.add_argument("--bench-dir", type=Path, default=BENCH_DIR, help=f"saved summaries (default {BENCH_DIR})")

@@ -21,6 +21,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     kind = cell_kind(cfg, args.cell)
     if args.force_source == "virtual":
         ensure_virtual_artefacts(cfg, spec.tool, kind, robot, args.seed)
+    view = None
+    if getattr(args, "view", False):
+        from app.view import live_view
+
+        view = live_view(robot, f"run-{args.task}", args.serve, args.force_source == "virtual")
     holder = open_cell(cfg, kind, robot, args.seed, spec.scene)
     try:
         cell = with_guard(cfg, spec.tool, make_force_source(cfg, args.force_source, spec.tool, holder.open(), robot),
@@ -28,10 +33,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         from tasks.runner import run_task
 
         summary = run_task(task, cell, cfg, robot, max_duration, record=not args.no_record,
-                           extra_summary={"seed": args.seed})
+                           extra_summary={"seed": args.seed}, view=view)
     finally:
         holder.close()
     emit(summary, args.json)
+    if view is not None:
+        from app.view import finish_view
+
+        finish_view(view, args.serve)
     if summary["outcome"] == "interrupted":
         return 130
     save_bench_summary(summary, f"run-{args.task}", run_tags(kind, args.force_source), args)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -176,6 +176,7 @@ class ControlLoop:
         slow_fraction: float = 0.8,
         ground_truth: ForceSource | None = None,
         guard: ContactGuard | None = None,
+        on_row: Callable[[dict[str, Any]], None] | None = None,
     ) -> None:
         self.arm = arm
         self.force = force
@@ -188,6 +189,8 @@ class ControlLoop:
         self.timing = TimingStats(period, slow_fraction)
         self.ground_truth = ground_truth
         self.guard = guard
+        self.on_row = on_row  # a live view of the rows (--view); it sees what the recording gets
+        self._state_at_read = ""
 
     def run(self) -> LoopResult:
         outcome, reason = "done", ""
@@ -211,6 +214,9 @@ class ControlLoop:
                     break
                 t0 = time.perf_counter()
                 state = self.arm.read_state()
+                # The state the force sources read in (the row's `state` is the one after the step):
+                # `replay` scores its virtual-vs-sensor figures on it, as the run did.
+                self._state_at_read = self.task.state_name
                 wrench = self.force.read(state)
                 truth = self.ground_truth.read(state) if self.ground_truth is not None else None
                 obs = Observation(t=cycle * self.period, cycle=cycle, state=state, wrench=wrench, q_cmd=q_cmd)
@@ -233,7 +239,8 @@ class ControlLoop:
                 else:
                     cmd = self.task.step(obs)
                     if self.task.done:
-                        self._record(obs, cmd, q_cmd, False, truth, time.perf_counter() - t0)
+                        self._record(obs, replace(cmd, rebias_force=False), q_cmd, False, truth,
+                                     time.perf_counter() - t0)
                         break
                 self.safety.check_command(cmd.q)
                 sent = self.arm.send_target(cmd.q)
@@ -318,10 +325,11 @@ class ControlLoop:
         truth: Wrench | None,
         compute: float,
     ) -> None:
-        if self.recorder is None:
+        if self.recorder is None and self.on_row is None:
             return
         s = obs.state
-        row: dict[str, Any] = {"t": obs.t, "cycle": obs.cycle, "state": self.task.state_name}
+        row: dict[str, Any] = {"t": obs.t, "cycle": obs.cycle, "state": self.task.state_name,
+                               "state_read": self._state_at_read, "force_rebias": bool(cmd.rebias_force)}
         for i in range(len(s.q)):
             row[f"q{i + 1}"] = float(s.q[i])
         for i in range(len(s.q)):
@@ -340,4 +348,11 @@ class ControlLoop:
         if self.guard is not None:
             row.update(self.guard.log_columns())
         row["compute_ms"] = compute * 1e3
-        self.recorder.append(row)
+        if self.recorder is not None:
+            self.recorder.append(row)
+        if self.on_row is not None:
+            try:
+                self.on_row(row)
+            except Exception as exc:  # a viewer gone away must not stop the arm mid-task
+                log.warning("live view stopped: %s", exc)
+                self.on_row = None

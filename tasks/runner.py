@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -56,41 +57,48 @@ class GroundTruthTap:
         """Virtual against measured, and the measured force against the setpoint, on regulated samples."""
         if not self.measured:
             return {}
-        meas, est = np.asarray(self.measured), np.asarray(self.estimated)
         regulated = getattr(self.task, "regulated_states", REGULATED_STATES.get(self.task.name))
-        if regulated:
-            rows = np.isin(np.asarray(self.states), list(regulated))
-        else:
-            rows = np.linalg.norm(meas[:, :3], axis=1) > CONTACT_N
-        # A missing reading (NaN: a timed-out read of either source) is no sample.
-        rows &= np.all(np.isfinite(meas), axis=1) & np.all(np.isfinite(est), axis=1)
-        if not rows.any():
-            return {"virtual_vs_sensor_samples": 0}
-        err = est[rows] - meas[rows]
-        out: dict[str, Any] = {
-            "virtual_vs_sensor_samples": int(rows.sum()),
-            "virtual_vs_sensor_fz_mae_n": float(np.mean(np.abs(err[:, 2]))),
-            "virtual_vs_sensor_fz_mean_error_n": float(np.mean(err[:, 2])),
-            "virtual_vs_sensor_fz_std_n": float(np.std(err[:, 2])),
-            "virtual_vs_sensor_mx_mae_nm": float(np.mean(np.abs(err[:, 3]))),
-            "virtual_vs_sensor_my_mae_nm": float(np.mean(np.abs(err[:, 4]))),
-        }
-        setpoint = task_summary.get("force_setpoint_n")
-        if setpoint is not None and "force_mae_n" in task_summary:
-            # With the virtual sensor in the loop the task scores what it saw; the cell's figure is
-            # what the F/T sensor measured against the setpoint.
-            e = meas[rows, 2] - float(setpoint)
-            out.update(virtual_force_mae_n=task_summary["force_mae_n"], force_mae_n=float(np.mean(np.abs(e))),
-                       force_std_n=float(np.std(e)), force_max_abs_error_n=float(np.max(np.abs(e))),
-                       force_mean_n=float(np.mean(meas[rows, 2])))
-        if "peak_force_n" in task_summary:
-            # Likewise the peak: the task's is what its force source read, the cell's what the sensor felt
-            # (from the first contact on, as the peg bench scores it).
-            working = ~np.isin(np.asarray(self.states), SETUP_STATES) & np.all(np.isfinite(meas[:, :3]), axis=1)
-            if working.any():
-                out.update(virtual_peak_force_n=task_summary["peak_force_n"],
-                           peak_force_n=float(np.max(np.linalg.norm(meas[working, :3], axis=1))))
-        return out
+        return virtual_vs_sensor(self.states, np.asarray(self.measured), np.asarray(self.estimated), regulated,
+                                 task_summary)
+
+
+def virtual_vs_sensor(states: Sequence[str], meas: np.ndarray, est: np.ndarray,
+                      regulated: Sequence[str] | None, task_summary: dict[str, Any]) -> dict[str, Any]:
+    """The run's virtual-vs-sensor figures from per-cycle states (as the force sources read), measured and
+    estimated wrenches (n, 6); `replay` calls it on a recording to score another observer or mapping."""
+    if regulated:
+        rows = np.isin(np.asarray(states), list(regulated))
+    else:
+        rows = np.linalg.norm(meas[:, :3], axis=1) > CONTACT_N
+    # A missing reading (NaN: a timed-out read of either source) is no sample.
+    rows &= np.all(np.isfinite(meas), axis=1) & np.all(np.isfinite(est), axis=1)
+    if not rows.any():
+        return {"virtual_vs_sensor_samples": 0}
+    err = est[rows] - meas[rows]
+    out: dict[str, Any] = {
+        "virtual_vs_sensor_samples": int(rows.sum()),
+        "virtual_vs_sensor_fz_mae_n": float(np.mean(np.abs(err[:, 2]))),
+        "virtual_vs_sensor_fz_mean_error_n": float(np.mean(err[:, 2])),
+        "virtual_vs_sensor_fz_std_n": float(np.std(err[:, 2])),
+        "virtual_vs_sensor_mx_mae_nm": float(np.mean(np.abs(err[:, 3]))),
+        "virtual_vs_sensor_my_mae_nm": float(np.mean(np.abs(err[:, 4]))),
+    }
+    setpoint = task_summary.get("force_setpoint_n")
+    if setpoint is not None and "force_mae_n" in task_summary:
+        # With the virtual sensor in the loop the task scores what it saw; the cell's figure is
+        # what the F/T sensor measured against the setpoint.
+        e = meas[rows, 2] - float(setpoint)
+        out.update(virtual_force_mae_n=task_summary["force_mae_n"], force_mae_n=float(np.mean(np.abs(e))),
+                   force_std_n=float(np.std(e)), force_max_abs_error_n=float(np.max(np.abs(e))),
+                   force_mean_n=float(np.mean(meas[rows, 2])))
+    if "peak_force_n" in task_summary:
+        # Likewise the peak: the task's is what its force source read, the cell's what the sensor felt
+        # (from the first contact on, as the peg bench scores it).
+        working = ~np.isin(np.asarray(states), SETUP_STATES) & np.all(np.isfinite(meas[:, :3]), axis=1)
+        if working.any():
+            out.update(virtual_peak_force_n=task_summary["peak_force_n"],
+                       peak_force_n=float(np.max(np.linalg.norm(meas[working, :3], axis=1))))
+    return out
 
 
 def run_task(
@@ -101,7 +109,9 @@ def run_task(
     max_duration_s: float,
     record: bool = True,
     extra_summary: dict[str, Any] | None = None,
+    view: Any | None = None,
 ) -> dict[str, Any]:
+    """Run `task` on `cell`; `view` (a cell.rerun_view.RunView) streams the rows live as they are logged."""
     recorder = None
     run_dir: Path | None = None
     if record:
@@ -114,7 +124,7 @@ def run_task(
     guard = cell.guard_for(task, cfg.safety.max_tool_force_n)
     loop = ControlLoop(
         cell.arm, cell.force, task, safety, cell.ticker, recorder, cfg.loop.period_s, max_duration_s,
-        cfg.loop.slow_cycle_fraction, ground_truth=tap, guard=guard,
+        cfg.loop.slow_cycle_fraction, ground_truth=tap, guard=guard, on_row=view.row if view is not None else None,
     )
     result = loop.run()
     # The arm is stopped: an interrupt now waits for the summary and the plot.
@@ -141,6 +151,9 @@ def run_task(
             summary.update(source_summary())
         if extra_summary:
             summary.update(extra_summary)
+        if view is not None:
+            outcome, reason = str(summary.get("outcome", "")), str(summary.get("reason") or "")
+            view.event(f"outcome: {outcome}" + (f" ({reason})" if reason else ""), warn=outcome != "done")
         if recorder is not None and run_dir is not None:
             summary["run_dir"] = str(run_dir)
             if recorder.rows_written:
@@ -162,5 +175,16 @@ def run_task(
                     summary["plot"] = str(png)
                 except Exception as exc:  # a plot must never lose the recording or the summary
                     log.error("could not draw the plot: %s", exc)
+                _write_rrd(run_dir, robot, summary)
             recorder.write_summary(summary)
     return summary
+
+
+def _write_rrd(run_dir: Path, robot: RobotModel, summary: dict[str, Any]) -> None:
+    """The step log's Rerun copy beside it (`recording.rrd`), named in the summary."""
+    try:
+        from cell.rerun_view import write_rrd
+
+        summary["rerun"] = str(write_rrd(run_dir, read_log(run_dir), robot, summary))
+    except Exception as exc:  # the Rerun copy must never lose the recording or the summary
+        log.error("could not write the Rerun recording: %s", exc)

@@ -1,0 +1,61 @@
+"""`--view`: the Rerun live view of a run, a bench trial or a replay (spawned viewer, or served for a browser)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cell.robot import RobotModel
+
+log = logging.getLogger("tmcell")
+
+
+def add_view_options(sp: Any, what: str) -> None:
+    """--view and --serve on a command's parser."""
+    sp.add_argument("--view", action="store_true", help=f"{what}: stream it to the Rerun viewer (spawned)")
+    sp.add_argument("--serve", action="store_true",
+                    help="with --view: serve the view for a browser instead (headless machines; Ctrl+C ends it)")
+
+
+def live_view(robot: RobotModel, name: str, serve: bool, virtual_in_loop: bool) -> Any:
+    """A RunView streaming to a spawned viewer or to a served web viewer."""
+    from cell.rerun_view import RunView, open_viewer
+
+    return RunView(open_viewer(name, serve), robot, virtual_in_loop)
+
+
+def finish_view(view: Any, serve: bool) -> None:
+    """Flush the stream; a served view lives in this process, so it stays up until Ctrl+C."""
+    if view is None:
+        return
+    view.rec.flush()
+    if serve:
+        log.info("the view stays served until Ctrl+C")
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass
+
+
+def view_replay(run_dir: Path, robot: RobotModel, estimates: np.ndarray, label: str, serve: bool,
+                virtual_in_loop: bool) -> None:
+    """The recorded run in the viewer with the replayed virtual wrench beside it (`wrench/replay/*`)."""
+    import rerun as rr
+
+    from cell.recorder import read_log
+    from cell.rerun_view import AXES, TIMELINE, RunView, log_table, open_viewer
+
+    table = read_log(run_dir)
+    view = RunView(open_viewer(f"replay-{Path(run_dir).name}", serve), robot, virtual_in_loop)
+    log_table(view, table)
+    t = np.asarray(table.column("t").to_numpy(zero_copy_only=False), float)
+    for k, axis in enumerate(AXES):
+        view.rec.send_columns(f"wrench/replay/{axis}", indexes=[rr.TimeColumn(TIMELINE, duration=t)],
+                              columns=rr.Scalars.columns(scalars=estimates[:, k]))
+    view.event(f"replayed with {label}")
+    finish_view(view, serve)
