@@ -21,7 +21,7 @@ from app.commands_cell import cmd_emulate, cmd_run, cmd_status
 from app.commands_figures import cmd_figures
 from app.commands_lab import cmd_calibrate, cmd_collect, cmd_evaluate, cmd_import, cmd_prepare, cmd_train
 from app.commands_plan import cmd_plan
-from app.commands_replay import cmd_replay
+from app.commands_replay import add_replay_parser
 from app.sensing import FORCE_SOURCES, PREPARE_SAMPLES
 from app.tasks_registry import TASK_NAMES
 from app.view import add_view_options
@@ -181,6 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bench peg-in-hole: run only these trial numbers (the same draws as in the full bench)")
     b.add_argument("--record", action="store_true",
                    help="bench peg-in-hole: log every trial run (runs/<date>-bench-peg/trial_NNN, as `run` logs)")
+    add_view_options(b, "bench peg-in-hole, one trial (--only K)")
     b.add_argument("--impacts", type=COUNT, default=COLLISION_IMPACTS, help="scripted impacts (bench collision)")
     b.add_argument("--free-s", type=float_in(0, 3600), default=COLLISION_FREE_S,
                    help="simulated seconds of free motion for false alarms (bench collision)")
@@ -199,17 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
     common(b)
     b.set_defaults(func=cmd_bench)
 
-    rp = sub.add_parser("replay", help="the virtual sensor again over a recorded run's joint data, scored as the run")
-    rp.add_argument("run_dir", help="a recorded run (runs/<time>-<task>/)")
-    rp.add_argument("--observer", choices=("kalman", "momentum"), default=None, help="default: the run's config")
-    rp.add_argument("--mapping", choices=("jacobian", "learned", "contact"), default=None,
-                    help="default: the run's config")
-    rp.add_argument("--model", default=None, help="torque model artefact (default: the run config's)")
-    rp.add_argument("--calibration", default=None, help="calibration folder (default: the run config's)")
-    rp.add_argument("--config", type=Path, default=None, help="cell config (default: the run's config.yaml)")
-    add_view_options(rp, "the recording and the replayed wrench")
-    rp.add_argument("--json", action="store_true", help="print one JSON object as the last stdout line")
-    rp.set_defaults(func=cmd_replay)
+    add_replay_parser(sub)
 
     fi = sub.add_parser("figures", help="write docs/figures.md from the benchmarks' saved JSON summaries")
     fi.add_argument("--bench-dir", type=Path, default=BENCH_DIR, help=f"saved summaries (default {BENCH_DIR})")

@@ -88,17 +88,27 @@ def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
         raise ConfigError("bench peg-in-hole: --trials must be >= 1, --max-offset-mm and --max-tilt-deg >= 0")
     if args.only is not None and not all(0 <= k < args.trials for k in args.only):
         raise ConfigError(f"bench peg-in-hole: --only {args.only}: trial numbers must lie in 0..{args.trials - 1}")
+    view = None
+    if getattr(args, "view", False):
+        from app.view import live_view
+
+        view = live_view(robot, f"bench-peg-trial-{(args.only or [0])[0]}", args.serve, args.force_source == "virtual")
     record = None
     if args.record:
         from cell.recorder import new_run_dir
 
         record = new_run_dir(Path(cfg.recording.directory), "bench-peg")
         log.info("recording every trial under %s", record)
-    return bench_peg(cfg, robot, pcfg, args.trials, args.seed if args.seed is not None else 0,
-                     only=args.only, record=record,
-                     max_offset_m=args.max_offset_mm * 1e-3, max_tilt_deg=args.max_tilt_deg,
-                     peg_diameter=args.peg_diameter_mm * 1e-3 if args.peg_diameter_mm else None,
-                     wrap=wrap, force_source=args.force_source)
+    out = bench_peg(cfg, robot, pcfg, args.trials, args.seed if args.seed is not None else 0,
+                    only=args.only, record=record,
+                    max_offset_m=args.max_offset_mm * 1e-3, max_tilt_deg=args.max_tilt_deg,
+                    peg_diameter=args.peg_diameter_mm * 1e-3 if args.peg_diameter_mm else None,
+                    wrap=wrap, force_source=args.force_source, view=view)
+    if view is not None:
+        from app.view import finish_view
+
+        finish_view(view, args.serve)
+    return out
 
 
 def _bench_sim(args: argparse.Namespace) -> dict[str, Any]:
@@ -167,6 +177,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
     chosen = BENCHES.get(args.what)
     if chosen is None:
         raise ConfigError(f"bench {args.what}: unknown benchmark")
+    if getattr(args, "view", False) and args.what != "peg-in-hole":
+        raise ConfigError(f"bench {args.what}: --view shows one trial of bench peg-in-hole only")
+    if getattr(args, "view", False) and len(args.only if args.only is not None else range(args.trials)) != 1:
+        raise ConfigError("bench peg-in-hole --view shows one trial: add --only K (or --trials 1)")
     out = chosen.run(args)
     emit(out, args.json)
     save_bench_summary(out, args.what, chosen.tags(args), args)

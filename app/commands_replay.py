@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from app.common import emit
 from app.tasks_registry import TASKS, robot_for
@@ -32,3 +33,20 @@ def cmd_replay(args: argparse.Namespace) -> int:
         view_replay(run_dir, robot, est, str(out["virtual_sensor"]), args.serve,
                     summary.get("force_source") == "virtual")
     return 0
+
+
+def add_replay_parser(sub: Any) -> None:
+    """`replay RUN_DIR [--observer] [--mapping] [--model] [--calibration] [--config] [--view] [--json]`."""
+    from app.view import add_view_options
+
+    rp = sub.add_parser("replay", help="the virtual sensor again over a recorded run's joint data, scored as the run")
+    rp.add_argument("run_dir", help="a recorded run (runs/<time>-<task>/)")
+    rp.add_argument("--observer", choices=("kalman", "momentum"), default=None, help="default: the run's config")
+    rp.add_argument("--mapping", choices=("jacobian", "learned", "contact"), default=None,
+                    help="default: the run's config")
+    rp.add_argument("--model", default=None, help="torque model artefact (default: the run config's)")
+    rp.add_argument("--calibration", default=None, help="calibration folder (default: the run config's)")
+    rp.add_argument("--config", type=Path, default=None, help="cell config (default: the run's config.yaml)")
+    add_view_options(rp, "the recording and the replayed wrench")
+    rp.add_argument("--json", action="store_true", help="print one JSON object as the last stdout line")
+    rp.set_defaults(func=cmd_replay)

@@ -126,7 +126,7 @@ class _ScoredTask:
 
 def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.ndarray, tilt: np.ndarray,
               seed: int, peg_diameter: float | None, wrap: CellWrapper | None,
-              record_dir: Path | None = None, index: int = 0) -> Trial:
+              record_dir: Path | None = None, index: int = 0, view: Any | None = None) -> Trial:
     profile = replace(load_profile(resolve(cfg.plant)), seed=seed)
     if peg_diameter is not None:
         profile = replace(profile, tool=replace(profile.tool, peg_diameter=peg_diameter))
@@ -152,12 +152,18 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
         loop = ControlLoop(cell.arm, force, scored, SafetyMonitor(cfg.safety, robot, cfg.loop.period_s),
                            cell.ticker, recorder, cfg.loop.period_s, pcfg.max_duration_s,
                            cfg.loop.slow_cycle_fraction, ground_truth=truth,
-                           guard=cell.guard_for(task, cfg.safety.max_tool_force_n))
+                           guard=cell.guard_for(task, cfg.safety.max_tool_force_n),
+                           on_row=view.row if view is not None else None)
         result = loop.run()
     finally:
         holder.close()
     raise_if_interrupted(result.outcome)  # Ctrl+C / SIGTERM ends the bench, not just this trial
     s = task.summary()
+    if view is not None:
+        view.event(f"outcome: {s['outcome']}" + (f" ({s['reason']})" if s.get("reason") else ""),
+                   warn=s["outcome"] != "done")
+    if recorder is not None and recorder.rows_written and record_dir is not None:
+        _write_trial_rrd(record_dir, robot, cell.force.name, s)
     outcome = s["outcome"] if result.outcome in ("done", "failed") else result.outcome
     reason = s["reason"] or result.reason
     success = outcome == "done" and scored.true_depth >= pcfg.target_depth_m - 0.001
@@ -179,7 +185,7 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
 def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, seed: int,
               max_offset_m: float = 0.002, max_tilt_deg: float = 2.0, peg_diameter: float | None = None,
               wrap: CellWrapper | None = None, force_source: str = "sensor", only: list[int] | None = None,
-              record: Path | None = None) -> dict[str, Any]:
+              record: Path | None = None, view: Any | None = None) -> dict[str, Any]:
     """`trials` insertions with the hole offset uniformly in +-max_offset_m on x and y and tilted uniformly
     in +-max_tilt_deg about x and y (independently), each on a fresh plant: the same arm (the profile's
     specimen), its own noise seeded from `seed`.  `only` runs just those trial indices (same draws, to
@@ -193,7 +199,7 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
         if only is not None and i not in only:
             continue
         tr = run_trial(cfg, robot, pcfg, offset, tilt, seed * 1000 + i, peg_diameter, wrap,
-                       record / f"trial_{i:03d}" if record is not None else None, index=i)
+                       record / f"trial_{i:03d}" if record is not None else None, index=i, view=view)
         log.info("trial %d: %s in %s s (offset %s mm, tilt %s deg, %d probes, %d realignments) %s", i,
                  "ok" if tr.success else "FAILED", tr.insertion_time_s, np.round(np.array(tr.offset_m) * 1e3, 2),
                  tr.tilt_deg, tr.probes, tr.realignments, tr.reason)
@@ -237,3 +243,14 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
                      for r in results if not r.success],
         "wall_time_s": time.perf_counter() - wall0,
     }
+
+
+def _write_trial_rrd(record_dir: Path, robot: RobotModel, force_source: str, summary: dict[str, Any]) -> None:
+    """A recorded trial's Rerun copy beside its step log, as `run` keeps one."""
+    try:
+        from cell.recorder import read_log
+        from cell.rerun_view import write_rrd
+
+        write_rrd(record_dir, read_log(record_dir), robot, {**summary, "force_source": force_source})
+    except Exception as exc:  # the Rerun copy must never lose the trial's result
+        log.error("could not write the Rerun recording of %s: %s", record_dir, exc)

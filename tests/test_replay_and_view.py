@@ -131,3 +131,10 @@ def test_write_rrd_of_a_tiny_log(tmp_path, robot):
     assert {"/wrench/sensor/fz", "/arm/links", "/task/state", "/events"} <= entities
     assert not any(e.startswith("/wrench/virtual") for e in entities)
     assert Path(path).name == "recording.rrd"
+
+
+def test_view_is_one_bench_trial_only(capsys):
+    assert main(["bench", "peg-in-hole", "--trials", "3", "--view"]) == 2
+    assert "--only K" in capsys.readouterr().err
+    assert main(["bench", "sim", "--view"]) == 2
+    assert "one trial of bench peg-in-hole" in capsys.readouterr().err
