@@ -18,6 +18,7 @@ from app.commands_bench import (
     cmd_bench,
 )
 from app.commands_cell import cmd_emulate, cmd_run, cmd_status
+from app.commands_doctor import add_doctor_parser
 from app.commands_figures import cmd_figures
 from app.commands_lab import cmd_calibrate, cmd_collect, cmd_evaluate, cmd_import, cmd_prepare, cmd_train
 from app.commands_plan import cmd_plan
@@ -201,6 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(func=cmd_bench)
 
     add_replay_parser(sub)
+    add_doctor_parser(sub)
 
     fi = sub.add_parser("figures", help="write docs/figures.md from the benchmarks' saved JSON summaries")
     fi.add_argument("--bench-dir", type=Path, default=BENCH_DIR, help=f"saved summaries (default {BENCH_DIR})")

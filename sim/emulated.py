@@ -4,7 +4,7 @@ The plant and both emulators run in their own process (`main.py emulate cell`), 
 sensor are separate machines: the host's control loop then does not share an interpreter with them.
 That process prints one JSON line `{"port": ..., "tty": ...}` and takes fault-injection commands on
 stdin, one per line, each answered by `{"ack": ...}` (or `{"error": ...}`) once in effect:
-`drop_link 1.5`, `freeze 2`, `unfreeze`, `delay 20 1.0`, `exceptions 1.0`, `clear`,
+`drop_link 1.5`, `freeze 2`, `unfreeze`, `delay 20 1.0`, `exceptions 1.0`, `estop [2]`, `clear`,
 `sensor garbage 0.3`, `sensor split 0.5`, `sensor drop 0.2`, `sensor delay 12 [0.4]`, `sensor clear`, `quit`.
 """
 
@@ -184,7 +184,7 @@ def serve_cell(cfg: CellConfig, seed: int | None, scene: SceneKind) -> int:
 # milliseconds or a probability), checked whole: a malformed one is refused, never skipped (which would
 # change the command's meaning, e.g. `delay 20 -1` read as `delay 20`: for ever).
 ARM_COMMANDS = {"drop_link": (1, 1), "freeze": (0, 1), "unfreeze": (0, 0), "delay": (1, 2), "exceptions": (0, 1),
-                "clear": (0, 0)}
+                "estop": (0, 1), "clear": (0, 0)}
 SENSOR_COMMANDS = {"garbage": (1, 1), "split": (1, 1), "drop": (1, 1), "delay": (1, 2), "clear": (0, 0)}
 
 
@@ -241,5 +241,7 @@ def _apply(words: list[str], arm_emu: Any, sensor_faults: Any) -> None:
         arm_emu.delay_replies(args[0], args[1] if len(args) > 1 else None)
     elif head == "exceptions":
         arm_emu.inject_exceptions(args[0] if args else None)
+    elif head == "estop":
+        arm_emu.press_estop(args[0] if args else None)
     else:
         arm_emu.clear_faults()

@@ -71,6 +71,7 @@ class EmulatorFaults:
     delay_until: float = 0.0  # ... until then
     exception_code: int = int(ExcCodes.DEVICE_FAILURE)  # Modbus exception replied to every request ...
     exceptions_until: float = 0.0  # ... until then
+    estop_until: float = 0.0  # the E-stop input reads pressed (what a bring-up check must notice)
 
     def frozen(self, now: float) -> bool:
         return now < self.frozen_until
@@ -80,6 +81,9 @@ class EmulatorFaults:
 
     def exception(self, now: float) -> int | None:
         return self.exception_code if now < self.exceptions_until else None
+
+    def estop(self, now: float) -> bool:
+        return now < self.estop_until
 
 
 class _Phase(enum.Enum):
@@ -207,10 +211,14 @@ class TM5Emulator:
         until = math.inf if seconds is None else time.monotonic() + seconds
         self._set_faults(exception_code=int(code), exceptions_until=until)
 
+    def press_estop(self, seconds: float | None = None) -> None:
+        """The E-stop input reads pressed for `seconds` (None: until cleared)."""
+        self._set_faults(estop_until=math.inf if seconds is None else time.monotonic() + seconds)
+
     def clear_faults(self) -> None:
         """Clear register faults (a dropped link comes back on its own schedule)."""
         self._set_faults(frozen_until=0.0, freeze_controller=False, delay_s=0.0, delay_until=0.0,
-                         exceptions_until=0.0)
+                         exceptions_until=0.0, estop_until=0.0)
 
     def restart_project(self) -> None:
         """The operator presses play after a stop coil: the robot-side program runs again (still held)."""
@@ -380,7 +388,7 @@ class TM5Emulator:
         di[DI_ERROR - DI_FIRST] = st.status.error or self._cycle_failed
         di[DI_RUNNING - DI_FIRST] = st.status.project_running and self.project_running
         di[DI_PAUSED - DI_FIRST] = st.status.paused or self.paused
-        di[DI_ESTOP - DI_FIRST] = st.status.estop
+        di[DI_ESTOP - DI_FIRST] = st.status.estop or self.faults.estop(time.monotonic())
 
     def _publish_user_area(self) -> None:
         st = self._robot.publish()
