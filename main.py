@@ -88,7 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--plans", type=Path, default=CONFIG_DIR / "plans.yaml", help="paths and planner settings")
     pl.add_argument("--path", action="append", help="only this named path (repeatable)")
     pl.add_argument("--waypoints", default=None, help="'j1,..,j6; j1,..,j6; ...' in degrees instead of --plans paths")
-    pl.add_argument("--model", default=None, help="torque model artefact (default: nominal rigid body)")
+    pl.add_argument("--model", default=None, help="torque model artefact, or 'nominal' (the URDF's rigid body); "
+                    "default: the wipe tool's prepared model (prepared first on a simulated cell)")
     pl.add_argument("--cell", choices=CELL_KINDS, default=None)
     common(pl)
     pl.set_defaults(func=cmd_plan)

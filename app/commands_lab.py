@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 from typing import Any
 
 from app.cells import calibration_cells, cell_identity, cell_kind, open_cell
 from app.common import emit, load_cell_config
-from app.sensing import run_prepare
+from app.sensing import PREPARE_SAMPLES, run_prepare
 from app.tasks_registry import robot_for
+from drivers.errors import ConfigError
+
+log = logging.getLogger("tmcell")
 
 
 def cmd_prepare(args: argparse.Namespace) -> int:
@@ -24,6 +28,17 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     cfg = load_cell_config(args)
     robot = robot_for(cfg, args.tool)
+    model_dir = Path(args.model) if args.model else cfg.virtual_sensor.for_tool(args.tool).path("model", args.tool)
+    if not (model_dir / "model.json").exists():
+        fix = f"`main.py prepare --tool {args.tool} --cell {args.cell}` (collects, trains the model and calibrates)"
+        if args.model or args.cell != "sim":
+            raise ConfigError(f"calibrate: no torque model at {model_dir}; make it with {fix}")
+        # A first use on the simulated cell: the model comes first, and prepare calibrates after it.
+        log.warning("calibrate: no torque model at %s; running %s on the simulated cell first", model_dir, fix)
+        out = run_prepare(cfg, args.tool, "sim", args.seed, PREPARE_SAMPLES, force=False)
+        if args.out is None:
+            emit(out, args.json)
+            return 0
     opener, applier = calibration_cells(cfg, args.cell, args.tool, robot, args.seed)
     out = calibrate(cfg, args.tool, robot, opener, applier, Path(args.model) if args.model else None,
                     Path(args.out) if args.out else None, cell_identity(cfg, args.cell, args.seed))

@@ -10,15 +10,16 @@ from typing import Any
 
 import numpy as np
 
-from app.cells import cell_kind, open_cell
+from app.cells import cell_kind, is_simulated, open_cell
 from app.common import emit, save_bench_summary
-from app.sensing import with_guard
+from app.sensing import PREPARE_SAMPLES, run_prepare, with_guard
 from app.tasks_registry import robot_for
 from cell.config import CellConfig, load_config
 from cell.robot import RobotModel
 from drivers.errors import ConfigError
 
 log = logging.getLogger("tmcell")
+NOMINAL = "nominal"  # --model nominal: the URDF's rigid body (P1), no prepared model needed
 
 
 def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[Any, str, Any]:
@@ -30,13 +31,29 @@ def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[
 
         model = load_model(Path(path), robot)
         return model.predict, f"{model.meta.kind} ({path})", toppra_terms(model)
-    log.warning("no --model and no prepared model (main.py prepare): planning with the nominal rigid-body model "
-                "(P1, no rotor inertia or friction); validation on the cell corrects the plan where it is wrong")
+    log.warning("--model %s: planning with the nominal rigid-body model (P1, no rotor inertia or friction); "
+                "validation on the cell corrects the plan where it is wrong", NOMINAL)
 
     def p1(q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
         return np.array([robot.rnea(a, b, c) for a, b, c in zip(q, dq, ddq, strict=True)])
 
     return p1, "P1 (nominal URDF)", None
+
+
+def prepared_model(cfg: CellConfig, kind: str) -> str:
+    """The wipe tool's prepared hybrid model: the plan's torque limits are the arm's own (rotor inertia,
+    friction).  Missing on a simulated cell it is prepared now; on the real arm the command says how."""
+    prepared = cfg.virtual_sensor.path("model", "wipe")
+    if not (prepared / "model.json").exists():
+        if not is_simulated(kind):
+            raise ConfigError(f"plan: no prepared model at {prepared}: make it on this arm with `main.py prepare "
+                              f"--tool wipe --cell {kind}`, or plan on the nominal rigid body with --model {NOMINAL}")
+        log.warning("plan: no prepared model at %s; preparing it now on the simulated cell (`main.py prepare "
+                    "--tool wipe`, once, a couple of minutes; --model %s plans on the nominal rigid body instead)",
+                    prepared, NOMINAL)
+        run_prepare(cfg, "wipe", "sim", None, PREPARE_SAMPLES, force=False)
+    log.info("planning with the prepared hybrid model %s (--model to choose another)", prepared)
+    return str(prepared)
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
@@ -54,12 +71,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
             raise ConfigError(f"{args.plans}: no path named '{unknown[0]}' (known: {', '.join(plan_file.paths)})")
     cfg.safety = replace(cfg.safety, max_tcp_speed=plan_file.max_tcp_speed)
     robot = robot_for(cfg, "wipe")
-    model_path = args.model
-    if model_path is None:
-        prepared = cfg.virtual_sensor.path("model", "wipe")
-        if (prepared / "model.json").exists():
-            model_path = str(prepared)
-            log.info("planning with the prepared hybrid model %s (--model to choose another)", prepared)
+    model_path = None if args.model == NOMINAL else args.model or prepared_model(cfg, cell_kind(cfg, args.cell))
     predictor, model_name, terms = torque_model(cfg, robot, model_path)
     collisions = CollisionChecker(robot, replace(cfg.scene, kind="free"))
 
