@@ -159,6 +159,14 @@ def _bench_collision(args: argparse.Namespace) -> dict[str, Any]:
                            free_s=args.free_s, reaction=args.reaction)
 
 
+def _bench_tool_gravity(args: argparse.Namespace) -> dict[str, Any]:
+    from bench.tool_gravity import bench_tools
+
+    cfg = load_cell_config(args)
+    return bench_tools(cfg, {tool: robot_for(cfg, tool) for tool in ("wipe", "peg")}, poses=9,
+                       seed=args.seed if args.seed is not None else 0)
+
+
 BENCHES: dict[str, Bench] = {
     "sim": Bench(_bench_sim),
     "plant": Bench(_bench_plant),
@@ -169,6 +177,8 @@ BENCHES: dict[str, Bench] = {
     # Exit 1 when an impact went undetected or free motion raised an alarm.
     "collision": Bench(_bench_collision, passed=lambda out: not out["missed"] and out["false_alarms"] == 0,
                        tags=_collision_tags),
+    # Exit 1 when a compensated free-space force exceeds the target (0.5 N).
+    "tool-gravity": Bench(_bench_tool_gravity, passed=lambda out: out["passed"]),
 }
 BENCH_NAMES = tuple(BENCHES)
 
