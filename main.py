@@ -58,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--plant", default=None, help="plant profile YAML (sim cells)")
     run.add_argument("--no-record", action="store_true", help="do not write runs/<...>/")
     add_view_options(run, "the run as it happens")
+    run.add_argument("--publish", metavar="HOST:PORT", help="send each step's wrench as a UDP JSON datagram")
     common(run)
     run.set_defaults(func=cmd_run)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 import numpy as np
 
@@ -26,6 +27,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         from app.view import live_view
 
         view = live_view(robot, f"run-{args.task}", args.serve, args.force_source == "virtual")
+    publisher = None
+    if getattr(args, "publish", None):
+        from cell.publish import WrenchPublisher, parse_endpoint
+
+        publisher = WrenchPublisher(parse_endpoint(args.publish), robot.n)
+    sinks = [s for s in (view, publisher) if s is not None]
     holder = open_cell(cfg, kind, robot, args.seed, spec.scene)
     try:
         cell = with_guard(cfg, spec.tool, make_force_source(cfg, args.force_source, spec.tool, holder.open(), robot),
@@ -33,9 +40,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         from tasks.runner import run_task
 
         summary = run_task(task, cell, cfg, robot, max_duration, record=not args.no_record,
-                           extra_summary={"seed": args.seed}, view=view)
+                           extra_summary={"seed": args.seed}, view=_one_sink(sinks))
     finally:
         holder.close()
+        if publisher is not None:
+            publisher.close()
     emit(summary, args.json)
     if view is not None:
         from app.view import finish_view
@@ -45,6 +54,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 130
     save_bench_summary(summary, f"run-{args.task}", run_tags(kind, args.force_source), args)
     return 0 if summary["outcome"] == "done" else 1
+
+
+def _one_sink(sinks: list[Any]) -> Any:
+    """The loop's row consumer: none, the one asked for, or both (the live view and the publisher)."""
+    if len(sinks) <= 1:
+        return sinks[0] if sinks else None
+    from cell.publish import RowSinks
+
+    return RowSinks(sinks)
 
 
 def run_tags(kind: str, force_source: str) -> list[str]:
