@@ -23,6 +23,7 @@ from app.commands_figures import cmd_figures
 from app.commands_lab import cmd_calibrate, cmd_collect, cmd_evaluate, cmd_import, cmd_prepare, cmd_train
 from app.commands_plan import cmd_plan
 from app.commands_replay import add_replay_parser
+from app.commands_tune import add_learner_parsers
 from app.sensing import FORCE_SOURCES, PREPARE_SAMPLES
 from app.tasks_registry import TASK_NAMES
 from app.view import add_view_options
@@ -141,6 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
     robot_option(ev, "the dataset's ")
     common(ev)
     ev.set_defaults(func=cmd_evaluate)
+    add_learner_parsers(sub, common, robot_option, tr, ev)
 
     im = sub.add_parser("import", help="turn another robot's logs into a dataset (the public UR10e CSV logs)")
     im.add_argument("source", choices=("ur10e",), help="whose logs: ur10e (../shared/data/ur10e/README.md)")

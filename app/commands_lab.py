@@ -70,7 +70,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     out = train(load_cell_config(args), Path(args.data), Path(args.out), kind=args.model, samples=args.samples,
                 window=args.window, grouping=args.grouping, derivatives=args.derivatives,
-                nthread=args.nthread, seed=args.seed or 0, robot=args.robot)
+                nthread=args.nthread, seed=args.seed or 0, robot=args.robot, learner=args.learner)
     emit(out, args.json)
     return 0
 
@@ -81,7 +81,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     curve = None if args.no_curve else args.curve if args.curve else DEFAULT_CURVE
     out = evaluate(load_cell_config(args), Path(args.data), Path(args.out), train_samples=args.train_samples,
                    large_samples=args.large_samples, curve=curve, nthread=args.nthread, seed=args.seed or 0,
-                   max_trees=args.max_trees, robot=args.robot, lofo=args.lofo)
+                   max_trees=args.max_trees, robot=args.robot, lofo=args.lofo, learners=args.learners,
+                   tuned=[Path(d) for d in args.tuned] if args.tuned else None, max_epochs=args.max_epochs)
     emit(out, args.json)
     return 0
 

@@ -15,6 +15,7 @@ from cell.derivatives import DerivativeMode
 from cell.dynamics.artefact import load_model
 from cell.dynamics.fastpredict import FastPredictor
 from cell.dynamics.learned import Forest, LearnedModel, physics_part
+from cell.dynamics.nets import NetLearner, NetParams
 from cell.robot import RobotModel
 from cell.samples import Samples
 from drivers.errors import ConfigError
@@ -109,14 +110,20 @@ def bench_model(
     t0 = time.perf_counter()
     physics, load = physics_part(model.kind, model.physics, big.q, big.dq, big.ddq)
     t_phys = time.perf_counter() - t0
-    forest = Forest(model.forest.spec, robot_model.n)
-    forest.fit(big, big.tau - physics, dataclasses.replace(model.params, nthread=nthread), load)
+    forest: Forest | NetLearner
+    if isinstance(model.params, NetParams):  # a DNN/LSTM part: the same networks refitted (JAX, CPU)
+        forest = NetLearner(model.forest.spec, robot_model.n)
+        forest.fit(big, big.tau - physics, dataclasses.replace(model.params, nthread=nthread), load)
+    else:
+        forest = Forest(model.forest.spec, robot_model.n)
+        forest.fit(big, big.tau - physics, dataclasses.replace(model.params, nthread=nthread), load)
     t_fast = np.concatenate([t_fast[:n_calls][warm], t_fast[n_calls:][warm]])
     t_stock = t_stock[warm]
     p50, p99 = float(np.percentile(t_fast, 50)), float(np.percentile(t_fast, 99))
     s50 = float(np.percentile(t_stock, 50))
     return {
-        "model": model.meta.kind, "features": model.meta.features, "trees": model.forest.trees(),
+        "model": model.meta.kind, "learner": model.learner, "features": model.meta.features,
+        "trees": model.forest.trees(),
         "compiled_depth": fast.forest.depth, "joints": [int(j) + 1 for j in outs],
         "hybrid_predict_p50_us": round(p50, 2), "hybrid_predict_p99_us": round(p99, 2),
         "hybrid_predict_max_us": round(float(np.max(t_fast)), 2),

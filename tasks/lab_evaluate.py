@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -73,6 +74,9 @@ def evaluate(
     max_trees: int | None = None,
     robot: str = CELL_ROBOT,
     lofo: bool = False,
+    learners: Sequence[str] | None = None,
+    tuned: Sequence[Path] | None = None,
+    max_epochs: int | None = None,
 ) -> dict[str, Any]:
     """Fit P1, P2, D, H1, H2, H3 on `train_samples` of the training split (whole moves; the hybrids'
     P2 identified on the same samples), D also on `large_samples` (D_large), and as variants H2 on
@@ -86,7 +90,11 @@ def evaluate(
     CLI: main.py evaluate --data artifacts/data/default/dataset.yaml --out artifacts/eval/default
          [--train-samples 24000] [--large-samples 500000] [--curve 24000,64000,128000,256000,500000]
          [--no-curve] [--max-trees N] [--nthread 2] [--seed 0] [--plant config/plants/alt.yaml] [--json]
+         [--learners dnn,lstm] [--tuned artifacts/tune/h1 ...] [--max-epochs N]
     (`--plant` only names the profile whose torque-noise floor the report compares against.)
+    `learners` adds D, H1, H2, H3 with those learned parts (rows D_dnn, H1_lstm, ...: the paper's Table 3),
+    fitted on the same samples; `tuned` adds each `tune` folder's best settings, refitted here on the
+    same samples (row <model>_<learner>_tuned).
     """
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -110,13 +118,17 @@ def evaluate(
     steps = ["P1", "P2", "D", "H1", "H2", "H3", "D_large"]
     if paper_variants:
         steps += ["H2_identified", "H1_paper", "D_paper"]
+    variants = {f"{k}_{L}": dataclasses.replace(opts, learner=L, max_epochs=max_epochs)
+                for L in (learners or []) if L != "xgboost" for k in ("D", "H1", "H2", "H3")}
+    variants.update(tuned_options(opts, tuned or [], max_epochs))
+    steps += list(variants)
     p2_small: P2Model | None = None
     for name in tqdm(steps, desc="fit models", unit="model"):
         t0 = time.perf_counter()
         kind = name.split("_")[0]
         data = large if name == "D_large" else small
         spec = PAPER_FEATURES if name.endswith("_paper") else None
-        o = dataclasses.replace(opts, h2_rigid="identified") if name == "H2_identified" else opts
+        o = dataclasses.replace(opts, h2_rigid="identified") if name == "H2_identified" else variants.get(name, opts)
         model = fit_model(kind, robot_model, data, o, sha, p2=p2_small if data is small else None, spec=spec)
         if name == "P2":
             assert isinstance(model, P2Model)
@@ -190,3 +202,26 @@ def evaluate(
     except Exception as exc:  # a plot must never lose the figures
         log.error("could not draw the evaluation plot: %s", exc)
     return summary
+
+
+def tuned_options(opts: TrainOptions, dirs: Sequence[Path], max_epochs: int | None) -> dict[str, TrainOptions]:
+    """Row name -> options holding a `tune` folder's best settings (its model/search.json)."""
+    from tasks.lab_train import DEFAULT_NET, DEFAULT_XGB
+
+    out: dict[str, TrainOptions] = {}
+    for d in dirs:
+        f = Path(d) / "model" / "search.json"
+        if not f.exists():
+            raise ConfigError(f"--tuned {d}: no model/search.json (not a `main.py tune` output folder)")
+        try:
+            doc = json.loads(f.read_text())
+            kind, learner, best = doc["model"], doc["learner"], dict(doc["best_params"])
+            if learner == "xgboost":
+                o = dataclasses.replace(opts, xgb={**opts.xgb, kind: dataclasses.replace(DEFAULT_XGB[kind], **best)})
+            else:
+                o = dataclasses.replace(opts, learner=learner, max_epochs=max_epochs,
+                                        net={kind: dataclasses.replace(DEFAULT_NET[kind], **best)})
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{f}: not a tune search record ({exc})") from None
+        out[f"{kind}_{learner}_tuned"] = o
+    return out

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Literal, cast
 
@@ -15,7 +15,8 @@ from cell.dataset import files_sha256, load_manifest, load_split, manifest_files
 from cell.derivatives import DerivativeMode
 from cell.dynamics.artefact import save_model
 from cell.dynamics.features import FeatureSpec
-from cell.dynamics.learned import LearnedModel, XGBParams, fit_learned
+from cell.dynamics.learned import LEARNERS, LearnedModel, XGBParams, fit_learned
+from cell.dynamics.nets import NetParams
 from cell.dynamics.physics import IdentificationConfig, P1Model, P2Model, identify_p2, nominal_p2
 from cell.dynamics.uncertainty import CoverageConfig
 from cell.robot import RobotModel
@@ -47,6 +48,23 @@ RESIDUAL_XGB = XGBParams(max_depth=3, min_child_weight=50, n_estimators=300, lea
                          early_stopping_rounds=40)
 LARGE_D_SAMPLES = 100_000  # D fitted on at least this many samples keeps every sample for training (fit_model)
 DEFAULT_XGB: dict[str, XGBParams] = {"D": XGBParams(), "H1": RESIDUAL_XGB, "H2": RESIDUAL_XGB, "H3": XGBParams()}
+# The networks' inputs: the paper's grouping (joints 1-3 together, then one net per joint), instant for
+# the DNN and the paper's 10-sample window for the LSTM.  D sees the link orientations (parameter-free);
+# a hybrid also sees its physics load and direction (the friction structure the residual is made of).
+NET_FEATURES: dict[str, FeatureSpec] = {
+    "D": FeatureSpec(window=1, grouping="paper", angle_sums=True),
+    "H1": FeatureSpec(window=1, grouping="paper", physics_inputs=True, friction_harmonics=1),
+    "H2": FeatureSpec(window=1, grouping="paper", physics_inputs=True, friction_harmonics=1),
+    "H3": FeatureSpec(window=1, grouping="paper", physics_inputs=True, friction_harmonics=1, angle_sums=True),
+}
+LSTM_WINDOW = 10  # the paper's: 80 ms of history at 8 ms
+# Untuned starting points (`main.py tune` searches around them): a residual needs a smaller net than D.
+DEFAULT_NET: dict[str, NetParams] = {
+    "D": NetParams(hidden=128, layers=3, epochs=60, patience=10),
+    "H1": NetParams(hidden=32, layers=2, epochs=30, patience=6),
+    "H2": NetParams(hidden=32, layers=2, epochs=30, patience=6),
+    "H3": NetParams(hidden=64, layers=3, epochs=40, patience=8),
+}
 
 
 @dataclasses.dataclass
@@ -64,13 +82,35 @@ class TrainOptions:
     # H2's rigid body: "nominal" is the paper's Table 2 (the same M, C, G as P1, the learned part
     # covers losses, inertial errors and the rest); "identified" takes P2's identified rigid body.
     h2_rigid: str = "nominal"
+    learner: str = "xgboost"  # the learned part of D and the hybrids: xgboost, dnn or lstm
+    net: dict[str, NetParams] = dataclasses.field(default_factory=dict)  # per kind, else DEFAULT_NET
+    max_epochs: int | None = None  # cap on the networks' epochs (quick runs)
 
     def spec(self, kind: str) -> FeatureSpec:
-        spec = self.features.get(kind, DEFAULT_FEATURES.get(kind, PAPER_FEATURES))
+        if self.learner != "xgboost" and kind not in self.features_set:
+            spec = NET_FEATURES.get(kind, PAPER_FEATURES)
+            if self.learner == "lstm":
+                spec = dataclasses.replace(spec, window=LSTM_WINDOW)
+        else:
+            spec = self.features.get(kind, DEFAULT_FEATURES.get(kind, PAPER_FEATURES))
         spec.validate(f"features[{kind}]")
         return spec
 
-    def params(self, kind: str) -> XGBParams:
+    @property
+    def features_set(self) -> set[str]:
+        """Kinds whose features were set explicitly (a network then uses them too, not NET_FEATURES)."""
+        return {k for k, v in self.features.items() if DEFAULT_FEATURES.get(k) != v}
+
+    def params(self, kind: str) -> XGBParams | NetParams:
+        if self.learner not in LEARNERS:
+            raise ConfigError(f"--learner {self.learner}: unknown (one of {', '.join(LEARNERS)})")
+        if self.learner != "xgboost":
+            n = self.net.get(kind, DEFAULT_NET.get(kind, NetParams()))
+            epochs = n.epochs if self.max_epochs is None else min(n.epochs, self.max_epochs)
+            return dataclasses.replace(n, learner=self.learner, nthread=self.nthread, seed=self.seed, epochs=epochs)
+        return self.xgb_params(kind)
+
+    def xgb_params(self, kind: str) -> XGBParams:
         p = self.xgb.get(kind, DEFAULT_XGB.get(kind, XGBParams()))
         rounds = p.n_estimators if self.max_trees is None else min(p.n_estimators, self.max_trees)
         return dataclasses.replace(p, nthread=self.nthread, seed=self.seed, n_estimators=rounds)
@@ -101,7 +141,8 @@ def load_samples(dataset: Path, split: Literal["train", "test"], robot: RobotMod
 
 
 def fit_model(kind: str, robot: RobotModel, s: Samples, opts: TrainOptions, data_sha: str = "",
-              p2: P2Model | None = None, spec: FeatureSpec | None = None) -> P1Model | P2Model | LearnedModel:
+              p2: P2Model | None = None, spec: FeatureSpec | None = None,
+              report: Callable[[int, float], None] | None = None) -> P1Model | P2Model | LearnedModel:
     """One model of the six on prepared samples (a hybrid identifies its P2 on the same samples)."""
     if kind == "P1":
         return P1Model(robot)
@@ -115,13 +156,13 @@ def fit_model(kind: str, robot: RobotModel, s: Samples, opts: TrainOptions, data
         assert p2 is not None
         return p2
     params = opts.params(kind)
-    if kind == "D" and len(s) >= LARGE_D_SAMPLES:
+    if kind == "D" and len(s) >= LARGE_D_SAMPLES and isinstance(params, XGBParams):
         # With hundreds of thousands of samples the tree budget, not over-fitting, bounds D, and an
         # early-stopping holdout only withholds a fifth of the data (default plant, 500k: J1-3 RMSE
         # 1.82 N m with the holdout, 1.64 without).
         params = dataclasses.replace(params, validation_fraction=0.0)
     return fit_learned(kind, robot, s, spec or opts.spec(kind), params, p2=p2, training_data_sha256=data_sha,
-                       coverage=opts.coverage)
+                       coverage=opts.coverage, report=report)
 
 
 def train(
@@ -136,6 +177,7 @@ def train(
     nthread: int = 2,
     seed: int = 0,
     robot: str = CELL_ROBOT,
+    learner: str = "xgboost",
 ) -> dict[str, Any]:
     """Fit one model on the training split of a dataset and save it as an artefact folder.
 
@@ -144,14 +186,19 @@ def train(
 
     CLI: main.py train --data artifacts/data/default/dataset.yaml --model H1 --out artifacts/models/h1
          [--samples 24000] [--window 1] [--grouping own|paper|per_joint|full]
-         [--derivatives zero_phase|causal] [--nthread 2] [--seed 0] [--robot tm5-700] [--json]
+         [--derivatives zero_phase|causal] [--learner xgboost|dnn|lstm] [--nthread 2] [--seed 0]
+         [--robot tm5-700] [--json]
     """
     if derivatives not in ("zero_phase", "causal"):
         raise ConfigError(f"--derivatives {derivatives}: unknown (zero_phase or causal)")
     settings = lab_settings(robot)
     robot_model = lab_robot(cfg, robot)
-    opts = TrainOptions(derivatives=cast(DerivativeMode, derivatives), nthread=nthread, seed=seed, **settings)
-    opts = opts.override(window=window, grouping=grouping)
+    opts = TrainOptions(derivatives=cast(DerivativeMode, derivatives), nthread=nthread, seed=seed, learner=learner,
+                        **settings)
+    if learner != "xgboost" and (window is not None or grouping is not None):
+        # the override applies to the features a network uses, not to the trees' defaults
+        opts.features = {**opts.features, kind: opts.spec(kind)}
+    opts = opts.override(kinds=[kind] if learner != "xgboost" else None, window=window, grouping=grouping)
     t0 = time.perf_counter()
     s, sha = load_samples(Path(dataset), "train", robot_model, opts.derivatives, samples, seed)
     model = fit_model(kind, robot_model, s, opts, sha)
@@ -159,6 +206,6 @@ def train(
     pred = model.predict(s.q, s.dq, s.ddq, s.starts)
     rmse = np.sqrt(np.nanmean((pred - s.tau) ** 2, axis=0))
     path = save_model(model, Path(out))
-    return {"model": kind, "out": str(path), "samples": len(s), "fit_s": round(fit_s, 2),
+    return {"model": kind, "learner": learner, "out": str(path), "samples": len(s), "fit_s": round(fit_s, 2),
             "derivatives": derivatives, "train_rmse_per_joint_nm": np.round(rmse, 4).tolist(),
             "meta": dataclasses.asdict(model.meta)}

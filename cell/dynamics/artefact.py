@@ -1,4 +1,4 @@
-"""Saved models: a folder with `model.json` (metadata, physics parameters, features) and one UBJ booster per joint."""
+"""Saved models: a folder with `model.json` (metadata, physics, features) and UBJ boosters or `nets.npz`."""
 
 from __future__ import annotations
 
@@ -10,12 +10,14 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import xgboost as xgb
 
 from cell.configio import load_dataclass, read_versioned_json
 from cell.dynamics.base import ModelMeta
 from cell.dynamics.features import FeatureSpec
 from cell.dynamics.learned import PHYSICS_PART, Forest, LearnedModel, XGBParams
+from cell.dynamics.nets import NetLearner, NetParams, flatten_nets, unflatten_nets
 from cell.dynamics.physics import P1Model, P2Model, P2Params, urdf_sha256
 from cell.dynamics.uncertainty import Coverage
 from cell.robot import RobotModel
@@ -25,6 +27,7 @@ log = logging.getLogger(__name__)
 
 FORMAT = "tmcell-torque-model"
 FORMAT_VERSION = 1
+NETS_FILE = "nets.npz"
 AnyModel = P1Model | P2Model | LearnedModel
 
 
@@ -43,15 +46,24 @@ def save_model(model: AnyModel, path: Path) -> Path:
             doc["p2"] = model.physics.params.to_dict()
             doc["p2_meta"] = dataclasses.asdict(model.physics.meta)
         doc["features"] = model.forest.spec.to_dict()
-        doc["xgboost"] = model.params.to_dict()
-        boosters = {}
-        for j, bst in sorted(model.forest.boosters.items()):
-            name = f"booster_j{j + 1}.ubj"
-            tmp = path / f".tmp-{name}"  # keeps the .ubj extension: it selects the format
-            bst.save_model(str(tmp))
-            os.replace(tmp, path / name)
-            boosters[str(j + 1)] = name
-        doc["boosters"] = boosters
+        if isinstance(model.forest, NetLearner):
+            doc["learner"] = model.forest.learner
+            doc["net"] = model.forest.params.to_dict()
+            tmp = path / f".tmp-{NETS_FILE}"
+            with tmp.open("wb") as fh:
+                np.savez(fh, allow_pickle=False, **flatten_nets(model.forest.nets))
+            os.replace(tmp, path / NETS_FILE)
+            doc["nets"] = NETS_FILE
+        else:
+            doc["xgboost"] = model.params.to_dict()
+            boosters = {}
+            for j, bst in sorted(model.forest.boosters.items()):
+                name = f"booster_j{j + 1}.ubj"
+                tmp = path / f".tmp-{name}"  # keeps the .ubj extension: it selects the format
+                bst.save_model(str(tmp))
+                os.replace(tmp, path / name)
+                boosters[str(j + 1)] = name
+            doc["boosters"] = boosters
         if model.coverage is not None:
             doc["coverage"] = model.coverage.to_dict()
     tmp = path / ".model.json.tmp"
@@ -99,6 +111,16 @@ def load_model(path: Path, robot: RobotModel) -> AnyModel:
         p2_meta = _meta(doc["p2_meta"]) if "p2_meta" in doc else dataclasses.replace(meta, kind="P2")
         p2 = P2Model(robot, P2Params.from_dict(doc["p2"]), p2_meta)
     spec = load_dataclass(FeatureSpec, doc["features"], f"{doc_path}: features")
+    coverage = None
+    if "coverage" in doc:
+        try:
+            coverage = Coverage.from_dict(doc["coverage"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(f"{doc_path}: coverage: {exc}") from None
+    if "nets" in doc:
+        return LearnedModel(kind=meta.kind, forest=_load_nets(doc, doc_path, spec, robot.n), physics=p2, meta=meta,
+                            params=load_dataclass(NetParams, doc.get("net", {}), f"{doc_path}: net"),
+                            coverage=coverage)
     params = load_dataclass(XGBParams, doc.get("xgboost", {}), f"{doc_path}: xgboost")
     boosters: dict[int, xgb.Booster] = {}
     for key, name in doc["boosters"].items():
@@ -116,10 +138,27 @@ def load_model(path: Path, robot: RobotModel) -> AnyModel:
     missing = [j + 1 for j in forest.outputs if j not in boosters]
     if missing:
         raise DataError(f"{doc_path}: no booster for joint(s) {missing}")
-    coverage = None
-    if "coverage" in doc:
-        try:
-            coverage = Coverage.from_dict(doc["coverage"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise DataError(f"{doc_path}: coverage: {exc}") from None
     return LearnedModel(kind=meta.kind, forest=forest, physics=p2, meta=meta, params=params, coverage=coverage)
+
+
+def _load_nets(doc: dict[str, Any], doc_path: Path, spec: FeatureSpec, n: int) -> NetLearner:
+    """The DNN/LSTM part: `nets.npz` beside model.json, one network per feature group, shapes checked."""
+    params = load_dataclass(NetParams, doc.get("net", {}), f"{doc_path}: net")
+    params.validate(f"{doc_path}: net")
+    if doc["nets"] != NETS_FILE:
+        raise DataError(f"{doc_path}: nets entry {doc['nets']!r} is not the network file of this artefact")
+    file = doc_path.parent / NETS_FILE
+    if not file.exists():
+        raise DataError(f"{doc_path}: network file {file} is missing")
+    learner = NetLearner(spec, n, params)
+    try:
+        with np.load(file, allow_pickle=False) as z:
+            learner.nets = unflatten_nets({k: z[k] for k in z.files}, len(learner.groups))
+        for gi, g in enumerate(learner.groups):
+            net = learner.nets[gi]
+            if net.x_mean.shape != (g.width,) or net.weights["Wout"].shape[1] != len(g.outputs):
+                raise ValueError(f"group {gi} has {net.x_mean.shape} inputs and {net.weights['Wout'].shape[1]} "
+                                 f"outputs, the features ask for {g.width} and {len(g.outputs)}")
+    except (KeyError, ValueError, OSError) as exc:
+        raise DataError(f"{file}: {exc}") from None
+    return learner

@@ -17,7 +17,8 @@ import xgboost as xgb
 
 from cell.derivatives import CausalDerivatives, FilterConfig
 from cell.dynamics.features import DerivedOne, Group, WindowBuffer, derived_layout
-from cell.dynamics.learned import PHYSICS_PART, LearnedModel
+from cell.dynamics.learned import PHYSICS_PART, Forest, LearnedModel
+from cell.dynamics.nets import NetLearner, NetServe
 
 
 def _base_score(model_json: dict) -> float:
@@ -180,15 +181,21 @@ class FastPredictor:
                                    total_window + np.asarray(g.extra, np.int64)]).astype(np.int64)
             self._slices.append((fmap, list(g.outputs)))
             for j in g.outputs:
-                boosters.append(model.forest.boosters[j])
+                if isinstance(model.forest, Forest):
+                    boosters.append(model.forest.boosters[j])
                 maps.append(fmap)
                 outputs.append(j)
             w_off += g.window_width
         self.outputs = np.asarray(outputs, np.int64)
-        self.forest = FlatForest(boosters, maps)
-        # Stock reference: copies set to one thread, XGBoost's fastest setting for a single row.
+        # A DNN/LSTM part is served by its numpy forward pass; its "stock" reference is the batch path.
+        self.forest: FlatForest | NetServe = (
+            NetServe(model.forest, [f for f, _ in self._slices]) if isinstance(model.forest, NetLearner)
+            else FlatForest(boosters, maps))
         self._stock: dict[int, xgb.Booster] = {}
-        if stock:
+        if stock and not isinstance(model.forest, Forest):
+            self.stock = False
+        elif stock and isinstance(model.forest, Forest):
+            # Stock reference: copies set to one thread, XGBoost's fastest setting for a single row.
             for j, bst in model.forest.boosters.items():
                 copy = xgb.Booster(model_file=bytearray(bst.save_raw()))
                 copy.set_param({"nthread": 1})

@@ -1,10 +1,11 @@
-"""Learned models: XGBoost forests per output joint (D) and the hybrids H1, H2, H3 fitted on physics residuals."""
+"""Learned models: XGBoost forests or DNN/LSTM nets (D) and the hybrids H1, H2, H3 fitted on physics residuals."""
 
 from __future__ import annotations
 
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -14,6 +15,7 @@ import xgboost as xgb
 from cell.configio import join, require
 from cell.dynamics.base import ModelMeta
 from cell.dynamics.features import FeatureSpec, Group, derived, group_matrix, groups, state_matrix
+from cell.dynamics.nets import NetLearner, NetParams
 from cell.dynamics.physics import P2Model, robot_meta
 from cell.dynamics.uncertainty import Coverage, CoverageConfig
 from cell.robot import RobotModel
@@ -22,6 +24,7 @@ from cell.samples import Samples
 log = logging.getLogger(__name__)
 
 LearnedKind = Literal["D", "H1", "H2", "H3"]
+LEARNERS = ("xgboost", "dnn", "lstm")
 # What physics each composition keeps (paper Table 2): the learned part is fitted on the rest.
 PHYSICS_PART: dict[str, str] = {"D": "none", "H1": "full", "H2": "rigid", "H3": "losses"}
 
@@ -78,9 +81,11 @@ class Forest:
     def outputs(self) -> list[int]:
         return [j for g in self.groups for j in g.outputs]
 
-    def fit(self, s: Samples, target: np.ndarray, params: XGBParams, physics: np.ndarray | None = None) -> Forest:
+    def fit(self, s: Samples, target: np.ndarray, params: XGBParams, physics: np.ndarray | None = None,
+            report: Callable[[int, float], None] | None = None) -> Forest:
         """target: (N, n) torque (or residual) per joint; only the learned joints are used.
-        physics: (N, n) torque the 'load' inputs are made of (see `physics_part`)."""
+        physics: (N, n) torque the 'load' inputs are made of (see `physics_part`).
+        `report(k, RMSE on the held-out segments)` after the k-th joint's booster (for pruning a search)."""
         state = state_matrix(s.q, s.dq, s.ddq)
         extras = derived(self.spec, s.q, s.dq, physics)
         train_rows, val_rows = _split_segments(s, params.validation_fraction, params.seed)
@@ -104,6 +109,9 @@ class Forest:
                 if val_rows is not None and bst.best_iteration is not None:
                     bst = bst[: bst.best_iteration + 1]  # keep the trees up to the best validation score
                 self.boosters[j] = bst
+                if report is not None and val_rows is not None:
+                    err = bst.inplace_predict(X[val_rows]) - y[val_rows]
+                    report(len(self.boosters) - 1, float(np.sqrt(np.mean(err**2))))
                 log.debug("joint %d: %d trees", j + 1, bst.num_boosted_rounds())
             del X
         self.fit_seconds = time.perf_counter() - t0
@@ -148,11 +156,15 @@ class LearnedModel:
     """
 
     kind: str
-    forest: Forest
+    forest: Forest | NetLearner  # the learned part: XGBoost trees or DNN/LSTM nets (same interface)
     physics: P2Model | None
     meta: ModelMeta
-    params: XGBParams = field(default_factory=XGBParams)
+    params: XGBParams | NetParams = field(default_factory=XGBParams)
     coverage: Coverage | None = None  # trust and uncertainty of the learned residual (hybrids only)
+
+    @property
+    def learner(self) -> str:
+        return self.forest.learner if isinstance(self.forest, NetLearner) else "xgboost"
 
     @property
     def part(self) -> str:
@@ -218,10 +230,11 @@ def fit_learned(
     robot: RobotModel,
     samples: Samples,
     spec: FeatureSpec | None = None,
-    params: XGBParams | None = None,
+    params: XGBParams | NetParams | None = None,
     p2: P2Model | None = None,
     training_data_sha256: str = "",
     coverage: CoverageConfig | None = None,
+    report: Callable[[int, float], None] | None = None,
 ) -> LearnedModel:
     """Fit D (torque) or a hybrid (the residual left by its physics part) on `samples`; a hybrid also
     gets its coverage and residual levels (cell/dynamics/uncertainty.py), measured on the segments the
@@ -234,14 +247,20 @@ def fit_learned(
     params = params or XGBParams()
     physics, load = physics_part(kind, p2, samples.q, samples.dq, samples.ddq)
     target = samples.tau - physics
-    forest = Forest(spec, robot.n).fit(samples, target, params, load)
+    forest: Forest | NetLearner
+    if isinstance(params, NetParams):
+        forest = NetLearner(spec, robot.n, params).fit(samples, target, params, load, report)
+        extra: dict[str, Any] = {"learner": params.learner, "net": params.to_dict(), "weights": forest.weights()}
+    else:
+        forest = Forest(spec, robot.n).fit(samples, target, params, load, report)
+        extra = {"xgboost": params.to_dict(), "trees": forest.trees()}
     meta = robot_meta(
         robot, kind, features={**spec.to_dict(), "derivatives": samples.mode},
         training_data_sha256=training_data_sha256, training_samples=len(samples),
-        extra={"xgboost": params.to_dict(), "fit_seconds": forest.fit_seconds, "trees": forest.trees(),
-               "physics": PHYSICS_PART[kind]},
+        extra={**extra, "fit_seconds": forest.fit_seconds, "physics": PHYSICS_PART[kind]},
     )
-    log.info("%s: %d trees on %d samples in %.1f s", kind, forest.trees(), len(samples), forest.fit_seconds)
+    log.info("%s (%s) on %d samples in %.1f s", kind, extra.get("learner", "xgboost"), len(samples),
+             forest.fit_seconds)
     cov = None
     if kind != "D" and p2 is not None:
         cc = coverage or CoverageConfig()
