@@ -3,6 +3,7 @@
 Two ways in: `write_rrd` turns a run's Parquet step log into `recording.rrd` beside it (every recorded
 run), and `LiveView` streams the same entities row by row to a spawned viewer or a browser (`--view`).
 Entity layout (what the test reads back): `arm/links` (line strip through the joint origins and the TCP),
+`arm/geometry/boxes|cylinders` (the URDF's collision shapes where the joints put them),
 `arm/tcp_path` (the TCP's path so far), `wrench/<virtual|sensor>/arrow` (force at the TCP, world axes,
 `ARROW_M_PER_N` metres per newton), `wrench/<virtual|sensor>/<fx..mz>` and `wrench/setpoint/fz` (time
 series), `task/state` and `events` (text logs).  The timeline is `time`, the run's own clock.
@@ -46,10 +47,17 @@ def open_viewer(name: str, serve: bool) -> rr.RecordingStream:
 
 
 class ArmFrames:
-    """The arm's drawable geometry at a posture: joint origins, TCP, TCP rotation (Pinocchio on the cell's URDF)."""
+    """The arm's drawable geometry at a posture (Pinocchio on the cell's URDF): joint origins, TCP, and the
+    URDF's collision shapes (boxes and cylinders) where the posture puts them."""
 
     def __init__(self, robot: RobotModel) -> None:
         self.robot = robot
+        try:
+            self.geom = pin.buildGeomFromUrdf(robot.model, str(robot.urdf), pin.GeometryType.COLLISION)
+            self.geom_data = self.geom.createData()
+        except (RuntimeError, ValueError) as exc:  # a URDF without shapes still draws as a line
+            log.debug("no URDF geometry for the view: %s", exc)
+            self.geom = None
 
     def at(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         m, d = self.robot.model, self.robot.data
@@ -58,6 +66,35 @@ class ArmFrames:
         joints = np.array([d.oMi[i].translation for i in range(1, m.njoints)])
         points = np.vstack([np.zeros(3), joints, tcp.translation])
         return points, tcp.translation.copy(), tcp.rotation.copy()
+
+    def shapes(self) -> dict[str, Any]:
+        """The collision shapes at the posture of the last `at` call, as Rerun archetypes by entity name."""
+        if self.geom is None:
+            return {}
+        pin.updateGeometryPlacements(self.robot.model, self.robot.data, self.geom, self.geom_data)
+        boxes: dict[str, list[Any]] = {"centers": [], "half_sizes": [], "quaternions": []}
+        cyl: dict[str, list[Any]] = {"centers": [], "radii": [], "lengths": [], "quaternions": []}
+        for obj, placement in zip(self.geom.geometryObjects, self.geom_data.oMg, strict=True):
+            g = obj.geometry
+            quat = rr.Quaternion(xyzw=pin.Quaternion(placement.rotation).coeffs())
+            if hasattr(g, "halfSide"):
+                boxes["centers"].append(placement.translation.copy())
+                boxes["half_sizes"].append(np.asarray(g.halfSide, float))
+                boxes["quaternions"].append(quat)
+            elif hasattr(g, "halfLength") and hasattr(g, "radius"):
+                cyl["centers"].append(placement.translation.copy())
+                cyl["radii"].append(float(g.radius))
+                cyl["lengths"].append(2.0 * float(g.halfLength))
+                cyl["quaternions"].append(quat)
+        out: dict[str, Any] = {}
+        if boxes["centers"]:
+            out["arm/geometry/boxes"] = rr.Boxes3D(centers=boxes["centers"], half_sizes=boxes["half_sizes"],
+                                                   quaternions=boxes["quaternions"], fill_mode="solid")
+        if cyl["centers"]:
+            out["arm/geometry/cylinders"] = rr.Cylinders3D(lengths=cyl["lengths"], radii=cyl["radii"],
+                                                           centers=cyl["centers"], quaternions=cyl["quaternions"],
+                                                           fill_mode="solid")
+        return out
 
 
 def _wrench(row: Mapping[str, Any], prefix: str) -> np.ndarray | None:
@@ -109,6 +146,8 @@ class RunView:
         points, tcp, rot = self.frames.at(q)
         self.path.append(tcp)
         self.rec.log("arm/links", rr.LineStrips3D([points], radii=0.01))
+        for entity, shape in self.frames.shapes().items():
+            self.rec.log(entity, shape)
         self.rec.log("arm/tcp_path", rr.LineStrips3D([np.asarray(self.path)], radii=0.002))
         for name, prefix in self.sources.items():
             w = _wrench(row, prefix)

@@ -98,7 +98,8 @@ def test_every_run_keeps_a_rerun_recording_that_reads_back(wipe_run):
     np.testing.assert_allclose(series["/wrench/sensor/fz"], sensor_fz)
     assert len(series["/wrench/setpoint/fz"]) == table.num_rows
     # The scene: the arm, its TCP path and the force arrows, one frame every few periods.
-    for entity in ("/arm/links", "/arm/tcp_path", "/wrench/virtual/arrow", "/wrench/sensor/arrow"):
+    for entity in ("/arm/links", "/arm/geometry/boxes", "/arm/geometry/cylinders", "/arm/tcp_path",
+                   "/wrench/virtual/arrow", "/wrench/sensor/arrow"):
         assert frames.get(entity, 0) >= table.num_rows // 5, entity
     # The task's states as they changed, and the outcome.
     assert {"approach", "wipe", "retract"} <= set(texts)
@@ -128,7 +129,7 @@ def test_write_rrd_of_a_tiny_log(tmp_path, robot):
     path = write_rrd(tmp_path, pa.table(rows), robot, {"force_source": "sensor", "outcome": "failed",
                                                        "reason": "test"})
     entities = {c.entity_path for c in RrdReader(path).stream().collect().stream()}
-    assert {"/wrench/sensor/fz", "/arm/links", "/task/state", "/events"} <= entities
+    assert {"/wrench/sensor/fz", "/arm/links", "/arm/geometry/boxes", "/task/state", "/events"} <= entities
     assert not any(e.startswith("/wrench/virtual") for e in entities)
     assert Path(path).name == "recording.rrd"
 
