@@ -42,6 +42,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     opener, applier = calibration_cells(cfg, args.cell, args.tool, robot, args.seed)
     out = calibrate(cfg, args.tool, robot, opener, applier, Path(args.model) if args.model else None,
                     Path(args.out) if args.out else None, cell_identity(cfg, args.cell, args.seed))
+    # The tool's weight on the F/T sensor, from 9 static wrist postures about home (free space, unloaded).
+    from tasks.tool_gravity import identify_tool_gravity
+
+    out["tool_gravity"] = identify_tool_gravity(
+        cfg, args.tool, robot, opener,
+        Path(args.out) if args.out else cfg.virtual_sensor.for_tool(args.tool).path("calibration", args.tool))
     emit(out, args.json)
     return 0
 

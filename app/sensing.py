@@ -25,6 +25,7 @@ def make_force_source(cfg: CellConfig, source: str, tool: str, cell: OpenCell, r
     """The OpenCell a task runs on for --force-source: `sensor` keeps the F/T sensor in the loop;
     `virtual` regulates with the tool's virtual sensor and keeps the F/T sensor (when the cell has
     one) as the logged ground truth.  Every task builds its force source here."""
+    cell = with_tool_gravity(cfg, tool, cell, robot)
     if source == "sensor":
         return cell
     if source != "virtual":
@@ -35,6 +36,19 @@ def make_force_source(cfg: CellConfig, source: str, tool: str, cell: OpenCell, r
     log.info("force source: virtual sensor (%s) for the %s tool; the F/T sensor is logged as ground truth",
              virtual.label, tool)
     return replace(cell, force=virtual, ground_truth=cell.force)
+
+
+def with_tool_gravity(cfg: CellConfig, tool: str, cell: OpenCell, robot: RobotModel) -> OpenCell:
+    """The F/T sensor less the tool's weight when `calibrate` identified it (`tool_gravity.json` in the tool's
+    calibration folder): it then reads the contact alone in any pose, not only in the pose of its tare."""
+    from cell.tool_gravity import FILE, GravityCompensatedSource, load
+
+    folder = cfg.virtual_sensor.for_tool(tool).path("calibration", tool)
+    if not (folder / FILE).exists():
+        return cell
+    tg = load(folder)
+    log.info("F/T sensor: the %s tool's weight compensated (%.3f kg, %s)", tool, tg.mass_kg, folder / FILE)
+    return replace(cell, force=GravityCompensatedSource(cell.force, tg, robot))
 
 
 def with_guard(cfg: CellConfig, tool: str, cell: OpenCell, robot: RobotModel) -> OpenCell:

@@ -128,3 +128,20 @@ class GravityCompensatedSource:
     def rebias(self) -> None:
         self.inner.rebias()
         self._u_tare = self._u  # the last read's pose: the loop re-zeroes right after a cycle's read
+
+
+# The identification's postures: home with the wrist turned (joints 4-6), so the tool points down, sideways
+# and tilted about both axes while the arm itself stays where the task works (degrees about home).
+WRIST_TURNS_DEG = ((0, 0, 0), (0, 45, 0), (0, -45, 0), (45, 0, 0), (-45, 0, 0), (45, 45, 90), (-45, -45, -90),
+                   (30, -60, 180), (-30, 60, -180))
+
+
+def identification_postures(robot: RobotModel, home: np.ndarray) -> list[np.ndarray]:
+    """The 9 static postures of the identification, within the joint limits."""
+    lim = robot.limits
+    out = []
+    for turn in WRIST_TURNS_DEG:
+        q = np.asarray(home, float).copy()
+        q[3:6] += np.radians(turn)
+        out.append(np.clip(q, lim.lower + 0.02, lim.upper - 0.02))
+    return out

@@ -103,3 +103,30 @@ def test_simulated_sensor_reads_under_half_a_newton_in_free_space_after_compensa
     assert out["free_force_max_before_n"] > 5.0  # the tool's weight turning with it
     assert out["free_force_max_after_n"] <= 0.5
     assert 0.5 < out["mass_kg"] < 3.0
+
+
+def test_identification_on_the_simulated_cell_and_the_sensor_source_compensated(cfg, tmp_path):
+    """calibrate's step on a cell: 9 wrist postures through the control loop, the fit saved, then every task's
+    F/T source of that tool wrapped."""
+    import dataclasses
+
+    from app.cells import calibration_cells
+    from app.sensing import with_tool_gravity
+    from app.tasks_registry import robot_for
+    from cell.loop import OpenCell
+    from tasks.tool_gravity import identify_tool_gravity
+
+    vs = dataclasses.replace(cfg.virtual_sensor, calibration_dir=str(tmp_path / "{tool}"))
+    cfg = dataclasses.replace(cfg, virtual_sensor=vs)
+    robot = robot_for(cfg, "peg")
+    opener, _ = calibration_cells(cfg, "sim", "peg", robot, None)
+    class Sensor:
+        name = "sensor"
+
+    plain = OpenCell(kind="sim", arm=None, force=Sensor(), ticker=None)  # type: ignore[arg-type]
+    assert with_tool_gravity(cfg, "peg", plain, robot) is plain  # nothing identified yet: as it was
+    out = identify_tool_gravity(cfg, "peg", robot, opener, tmp_path / "peg")
+    assert out["outcome"] == "done" and out["mass_kg"] == pytest.approx(0.6, abs=0.05)
+    assert out["fit_rms_force_n"] < 0.1
+    wrapped = with_tool_gravity(cfg, "peg", plain, robot)
+    assert isinstance(wrapped.force, GravityCompensatedSource) and wrapped.force.inner is plain.force
