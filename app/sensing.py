@@ -73,7 +73,8 @@ def with_guard(cfg: CellConfig, tool: str, cell: OpenCell, robot: RobotModel) ->
     point = np.asarray(cfg.virtual_sensor.wrench_point, float)
 
     def factory(task: str, contact_limit_n: float) -> Any:
-        return build_guard(cfg.collision, model, robot, cfg.loop.period_s, task, contact_limit_n, point)
+        return build_guard(cfg.collision, model, robot, cfg.loop.period_s, task, contact_limit_n, point,
+                           over_wire=cell.kind != "sim")
 
     return replace(cell, guard=factory)
 

@@ -291,6 +291,11 @@ class DetectorSettings:
     stick_speed: float = 0.05  # rad/s: below it a joint's friction may hold anything in its static band
     coverage_min_count: float = 20.0  # training samples a (q, q', q'') cell needs before the model's own level applies
     confirm_periods: int = 1  # periods in a row over the threshold before it counts
+    # Thresholds x this on a cell read over a wire (emulated, real), and at least 2 periods over them:
+    # the host reads at its own pace, not the controller's cycle, so samples repeat, skip and jitter
+    # against the targets it streams, and the arm's torques with them.
+    wire_margin: float = 3.0
+    wire_observer_gain: float = 30.0  # 1/s: the residual's bandwidth over a wire (the jitter is fast)
     rebias_window_s: float = 0.1  # zeroing at rest averages this much of the residual
 
     def validate(self, where: str) -> None:
@@ -301,6 +306,8 @@ class DetectorSettings:
         require(self.coverage_min_count >= 0, f"{where}.coverage_min_count", "must be >= 0")
         require(self.stick_speed >= 0, f"{where}.stick_speed", "must be >= 0 rad/s")
         require(0 <= self.inertia_uncertainty <= 2, f"{where}.inertia_uncertainty", "must lie in [0, 2]")
+        require(0 < self.wire_observer_gain <= 1000, f"{where}.wire_observer_gain", "must lie in (0, 1000] 1/s")
+        require(1 <= self.wire_margin <= 10, f"{where}.wire_margin", "must lie in [1, 10]")
         require(1 <= self.confirm_periods <= 10, f"{where}.confirm_periods", "must lie in 1..10")
         require(self.rebias_window_s > 0, f"{where}.rebias_window_s", "must be > 0")
 

@@ -79,7 +79,7 @@ class CollisionDetector:
     """Fast residual, thresholds and the tool force they imply, one control period at a time."""
 
     def __init__(self, model: LearnedModel, robot: RobotModel, dt: float, settings: DetectorSettings,
-                 wrench_point: np.ndarray) -> None:
+                 wrench_point: np.ndarray, over_wire: bool = False) -> None:
         n = robot.n
         if len(settings.floor_nm) != n:
             raise ValueError(f"collision.detector.floor_nm needs {n} values (one per joint), "
@@ -87,13 +87,17 @@ class CollisionDetector:
         self.settings = settings
         self.dt = dt
         self.n = n
-        self.observer = MomentumObserver(model, dt, settings.observer_gain,
+        gain = min(settings.observer_gain, settings.wire_observer_gain) if over_wire else settings.observer_gain
+        self.observer = MomentumObserver(model, dt, gain,
                                          max(1, int(round(settings.rebias_window_s / dt))), trapezoid=True)
         self.coverage = model.coverage
         # The levels blended by coverage alone (the sticking regime has its own term below).
         self._levels = (dataclasses.replace(model.coverage, blend=True, stick_speed=0.0)
                         if model.coverage is not None else None)
         self.floor = np.asarray(settings.floor_nm, float)
+        self.margin = settings.wire_margin if over_wire else 1.0
+        # Over a wire a single repeated or skipped read can swing the residual for one period.
+        self.confirm = max(settings.confirm_periods, 2) if over_wire else settings.confirm_periods
         self.wrench_map = JacobianMap(robot, np.asarray(wrench_point, float))
         # 1 kg at the tool's centre of mass: its gravity torques are what a payload error adds per kg.
         self._pm = robot.model.copy()
@@ -116,6 +120,7 @@ class CollisionDetector:
         self.threshold = np.full(self.n, np.inf)
         self.force = np.zeros(3)
         self._q = np.zeros(self.n)
+        self._last: ArmState | None = None
 
     def rebias(self) -> None:
         """Zero the residual here (arm at rest, no contact): the payload term then counts from this pose."""
@@ -149,9 +154,14 @@ class CollisionDetector:
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(state.dq)) and np.all(np.isfinite(state.tau))):
             raise SafetyStopError("collision detector: non-finite joint state (q, q' or torque): cannot check "
                                   "for collisions")
+        # Over a wire the host may read the controller's previous sample again (no new cycle yet): a
+        # repeat carries no new momentum, and integrating its torque over another period would.
+        if self._last is not None and np.array_equal(q, self._last.q) and np.array_equal(state.tau, self._last.tau):
+            return self.residual
+        self._last = state
         self._q = q
         self.residual = self.observer.update(state)
-        self.threshold = self.thresholds(q, np.asarray(state.dq, float), self.observer.acceleration)
+        self.threshold = self.margin * self.thresholds(q, np.asarray(state.dq, float), self.observer.acceleration)
         self.force = self.wrench_map.map(q, self.residual).wrench[:3]
         return self.residual
 
@@ -160,13 +170,13 @@ class CollisionDetector:
         over = np.abs(self.residual) > self.threshold
         self._over = np.where(over, self._over + 1, 0)
         self._force_over = 0
-        return np.flatnonzero(self._over >= self.settings.confirm_periods)
+        return np.flatnonzero(self._over >= self.confirm)
 
     def check_contact(self, limit_n: float) -> bool:
         """Whether the fast tool force has been over `limit_n` for `confirm_periods` periods in a row."""
         self._over[:] = 0
         self._force_over = self._force_over + 1 if float(np.linalg.norm(self.force)) > limit_n else 0
-        return self._force_over >= self.settings.confirm_periods
+        return self._force_over >= self.confirm
 
     def ratios(self) -> np.ndarray:
         return np.abs(self.residual) / self.threshold

@@ -206,10 +206,10 @@ class ContactGuard:
 
 
 def build_guard(cfg: CollisionConfig, model: Any, robot: RobotModel, dt: float, task: str, contact_limit_n: float,
-                wrench_point: np.ndarray) -> ContactGuard | None:
+                wrench_point: np.ndarray, over_wire: bool = False) -> ContactGuard | None:
     """The guard for `task` on the hybrid `model` (cell/virtual_sensor.py load_observer_model), or None
     when collision detection is switched off."""
     if not cfg.enabled:
         return None
-    detector = CollisionDetector(model, robot, dt, cfg.detector, wrench_point)
+    detector = CollisionDetector(model, robot, dt, cfg.detector, wrench_point, over_wire)
     return ContactGuard(detector, cfg, task, robot, dt, contact_limit_n)

@@ -239,6 +239,7 @@ class MomentumObserver:
         self.r = np.zeros(self.n)
         self.integral = np.zeros(self.n)
         self._beta: np.ndarray | None = None
+        self._t: float | None = None
         self.p0: np.ndarray | None = None
         self._estimate = np.zeros(self.n)
         self.inertial = np.zeros(self.n)
@@ -266,10 +267,16 @@ class MomentumObserver:
         if self.trapezoid and self._beta is not None:
             # The torque changes within a period (the servo's feedforward as a move starts): the
             # end-of-period sample integrated as a constant reads that change as an external torque.
-            self.integral += (0.5 * (beta + self._beta) + self.r) * self.dt
+            # Over a wire the samples come at the host's pace, not the controller's: a late or skipped
+            # read spans more than a period, and the momentum moved over all of it.
+            h = self.dt
+            if self._t is not None:
+                h = float(np.clip(state.t - self._t, 0.25 * self.dt, 4.0 * self.dt))
+            self.integral += (0.5 * (beta + self._beta) + self.r) * h
         else:
             self.integral += (beta + self.r) * self.dt
         self._beta = beta
+        self._t = float(state.t)
         self.r = self.K * (p - self.p0 - self.integral)
         raw = -self.r
         self.bias.push(raw)

@@ -254,3 +254,25 @@ def test_bench_collision_measures_impacts_and_free_motion(vs, model):
         if t["contact"]:
             assert t["peak_force_n"] > 0 and t["ft_peak_n"] > 0
             assert t["detected"], t
+
+
+def test_over_a_wire_repeated_reads_are_skipped_and_thresholds_widen(vs, model):
+    cfg, robot = vs["cfg"], vs["robot"]
+    point = np.asarray(cfg.virtual_sensor.wrench_point, float)
+    local = build_guard(cfg.collision, model, robot, cfg.loop.period_s, "play", 150.0, point)
+    wire = build_guard(cfg.collision, model, robot, cfg.loop.period_s, "play", 150.0, point, over_wire=True)
+    assert local is not None and wire is not None
+    q = _posture(robot, np.asarray(cfg.robot.home, float), [0.45, -0.15, 0.25])
+    tau = robot.gravity(q)
+    for k in range(5):
+        st = ArmState(t=k * cfg.loop.period_s, q=q, dq=np.zeros(6), tau=tau + 0.5 * k)
+        local.detector.update(st)
+        wire.detector.update(st)
+    assert np.allclose(wire.detector.threshold, cfg.collision.detector.wire_margin * local.detector.threshold)
+    assert wire.detector.confirm == 2 and local.detector.confirm == 1
+    # The same sample read again (no new controller cycle) changes nothing; a new one does.
+    before = wire.detector.residual.copy()
+    wire.detector.update(ArmState(t=5 * cfg.loop.period_s, q=q, dq=np.zeros(6), tau=tau + 2.0))
+    assert np.array_equal(wire.detector.residual, before)
+    wire.detector.update(ArmState(t=6 * cfg.loop.period_s, q=q, dq=np.zeros(6), tau=tau + 2.5))
+    assert not np.array_equal(wire.detector.residual, before)
