@@ -206,7 +206,7 @@ def evaluate(
 
 def tuned_options(opts: TrainOptions, dirs: Sequence[Path], max_epochs: int | None) -> dict[str, TrainOptions]:
     """Row name -> options holding a `tune` folder's best settings (its model/search.json)."""
-    from tasks.lab_train import DEFAULT_NET, DEFAULT_XGB
+    from tasks.lab_train import DEFAULT_XGB, default_net
 
     out: dict[str, TrainOptions] = {}
     for d in dirs:
@@ -220,7 +220,7 @@ def tuned_options(opts: TrainOptions, dirs: Sequence[Path], max_epochs: int | No
                 o = dataclasses.replace(opts, xgb={**opts.xgb, kind: dataclasses.replace(DEFAULT_XGB[kind], **best)})
             else:
                 o = dataclasses.replace(opts, learner=learner, max_epochs=max_epochs,
-                                        net={kind: dataclasses.replace(DEFAULT_NET[kind], **best)})
+                                        net={kind: dataclasses.replace(default_net(kind, learner), **best)})
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"{f}: not a tune search record ({exc})") from None
         out[f"{kind}_{learner}_tuned"] = o

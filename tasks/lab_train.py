@@ -65,6 +65,19 @@ DEFAULT_NET: dict[str, NetParams] = {
     "H2": NetParams(hidden=32, layers=2, epochs=30, patience=6),
     "H3": NetParams(hidden=64, layers=3, epochs=40, patience=8),
 }
+# An LSTM step costs its window times a dense layer's work (and four gates): narrower cells, fewer epochs.
+DEFAULT_LSTM: dict[str, NetParams] = {
+    "D": NetParams(learner="lstm", hidden=48, layers=2, epochs=30, patience=6),
+    "H1": NetParams(learner="lstm", hidden=24, layers=2, epochs=25, patience=5),
+    "H2": NetParams(learner="lstm", hidden=24, layers=2, epochs=25, patience=5),
+    "H3": NetParams(learner="lstm", hidden=32, layers=2, epochs=30, patience=6),
+}
+
+
+def default_net(kind: str, learner: str) -> NetParams:
+    """The untuned settings of a DNN or LSTM part of `kind`."""
+    table = DEFAULT_LSTM if learner == "lstm" else DEFAULT_NET
+    return table.get(kind, NetParams())
 
 
 @dataclasses.dataclass
@@ -105,7 +118,7 @@ class TrainOptions:
         if self.learner not in LEARNERS:
             raise ConfigError(f"--learner {self.learner}: unknown (one of {', '.join(LEARNERS)})")
         if self.learner != "xgboost":
-            n = self.net.get(kind, DEFAULT_NET.get(kind, NetParams()))
+            n = self.net.get(kind, default_net(kind, self.learner))
             epochs = n.epochs if self.max_epochs is None else min(n.epochs, self.max_epochs)
             return dataclasses.replace(n, learner=self.learner, nthread=self.nthread, seed=self.seed, epochs=epochs)
         return self.xgb_params(kind)

@@ -9,6 +9,7 @@ import multiprocessing as mp
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
@@ -20,16 +21,21 @@ from cell.configio import dumps_strict
 from cell.dynamics.artefact import load_model, save_model
 from cell.dynamics.learned import LEARNERS, LearnedModel
 from cell.dynamics.physics import P2Model, identify_p2
-from cell.samples import Samples
-from drivers.errors import ConfigError
+from cell.samples import Samples, subsample_segments
+from drivers.errors import CellError, ConfigError
 from tasks.lab_robot import CELL_ROBOT, lab_robot, lab_settings
-from tasks.lab_train import DEFAULT_NET, DEFAULT_XGB, TrainOptions, fit_model, load_samples
+from tasks.lab_train import DEFAULT_XGB, TrainOptions, default_net, fit_model, load_samples
 from tasks.tune_space import Param, default_space, load_space
 
 log = logging.getLogger(__name__)
 
 TUNABLE = ("D", "H1", "H2", "H3")
-VALIDATION_SHARE = 0.2  # of the training family's trajectories (or moves) held out to score a configuration
+VALIDATION_SHARE = 0.2
+
+
+class WorkerLost(CellError):
+    """A worker process died: the trials it finished are in the study, re-running the command resumes."""
+  # of the training family's trajectories (or moves) held out to score a configuration
 
 
 @dataclasses.dataclass
@@ -77,10 +83,14 @@ class Objective:
         self.robot = lab_robot(job.cfg, job.robot)
         self.opts = TrainOptions(learner=job.learner, nthread=job.nthread, seed=job.seed, max_epochs=job.max_epochs,
                                  **lab_settings(job.robot))
-        s, self.sha = load_samples(job.dataset, "train", self.robot, "zero_phase", job.samples, job.seed)
+        # Split the whole training split by trajectory first, then cut each side to its share of `samples`
+        # (whole moves): the held-out trajectories are never seen, not even in part, by the fit.
+        s, self.sha = load_samples(job.dataset, "train", self.robot, "zero_phase", None, job.seed)
         tr, va, self.unit = split_validation(s, VALIDATION_SHARE, job.seed)
-        self.fit_rows, self.val_rows = s.take_rows(tr), s.take_rows(va)
-        self.all = s
+        n_val = max(1, int(round(job.samples * VALIDATION_SHARE)))
+        self.fit_rows = subsample_segments(s.take_rows(tr), job.samples - n_val, job.seed)
+        self.val_rows = subsample_segments(s.take_rows(va), n_val, job.seed)
+        self.all = stack_samples([self.fit_rows, self.val_rows])
         p2_dir = job.out / "p2"
         self.p2: P2Model | None = None
         if job.kind != "D" and (p2_dir / "model.json").exists():
@@ -93,7 +103,7 @@ class Objective:
         if self.job.learner == "xgboost":
             xgb = {**self.opts.xgb, k: dataclasses.replace(DEFAULT_XGB[k], **config)}
             return dataclasses.replace(self.opts, xgb=xgb)
-        return dataclasses.replace(self.opts, net={k: dataclasses.replace(DEFAULT_NET[k], **config)})
+        return dataclasses.replace(self.opts, net={k: dataclasses.replace(default_net(k, self.job.learner), **config)})
 
     def __call__(self, config: dict[str, Any], report: Any = None) -> float:
         model = fit_model(self.job.kind, self.robot, self.fit_rows, self.options(config), self.sha, p2=self.p2,
@@ -103,8 +113,19 @@ class Objective:
         return float(np.mean(np.sqrt(np.nanmean(err**2, axis=0))))
 
 
+def stack_samples(parts: list[Samples]) -> Samples:
+    """Row-wise concatenation; each part's trajectories stay separate (the best settings' refit uses both)."""
+    offs = np.cumsum([0] + [len(p) for p in parts[:-1]])
+    seg = np.cumsum([0] + [int(p.segment.max()) + 1 for p in parts[:-1]])
+    return Samples(q=np.concatenate([p.q for p in parts]), dq=np.concatenate([p.dq for p in parts]),
+                   ddq=np.concatenate([p.ddq for p in parts]), tau=np.concatenate([p.tau for p in parts]),
+                   starts=np.concatenate([p.starts + o for p, o in zip(parts, offs, strict=True)]),
+                   names=parts[0].names, mode=parts[0].mode,
+                   segment=np.concatenate([p.segment + g for p, g in zip(parts, seg, strict=True)]))
+
+
 def defaults(kind: str, learner: str, space: list[Param]) -> dict[str, Any]:
-    base = DEFAULT_XGB[kind] if learner == "xgboost" else DEFAULT_NET[kind]
+    base = DEFAULT_XGB[kind] if learner == "xgboost" else default_net(kind, learner)
     return {p.name: getattr(base, p.name) for p in space}
 
 
@@ -275,9 +296,8 @@ def run_grid(job: Job, space: list[Param], trials: int, workers: int, storage_ur
 
     try:
         current = dict(start)
+        changed, truncated, cycles = True, False, 0
         best = default = evaluate_all([current])[0]
-        cycles = 0
-        changed, truncated = True, False
         while budget["left"] > 0:
             changed = False
             for p in space:
@@ -290,6 +310,9 @@ def run_grid(job: Job, space: list[Param], trials: int, workers: int, storage_ur
             cycles += 1
             if not changed:
                 break
+    except BrokenProcessPool:
+        raise WorkerLost(f"tune: a grid worker died; {len(cache)} scored configurations are in the study, "
+                         "re-run the same command to resume") from None
     finally:
         bar.close()
         if pool is not None:
