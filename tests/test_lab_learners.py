@@ -23,6 +23,7 @@ from cell.dynamics.physics import P1Model, nominal_p2
 from cell.robot import RobotModel
 from cell.samples import Samples, stack
 from drivers.errors import ConfigError, DataError
+from tasks.lab_evaluate import evaluate
 from tasks.lab_robot import lab_robot
 from tasks.lab_train import TrainOptions, fit_model
 from tasks.lab_tune import split_validation, tune
@@ -103,7 +104,8 @@ def test_lstm_hybrid_serves_one_sample_as_the_batch_and_reads_its_window(lab, tm
     fast = FastPredictor(back, DT)
     one = np.array([fast.predict_one(t.q[k], t.dq[k], t.ddq[k]) for k in range(60)])
     np.testing.assert_allclose(one, batch, atol=1e-3)
-    assert isinstance(back.forest, NetLearner) and back.forest.nets[0].weights["Wh"].shape == (12, 48)  # an LSTM cell: four gates of 12 units
+    # an LSTM cell: four gates of 12 units
+    assert isinstance(back.forest, NetLearner) and back.forest.nets[0].weights["Wh"].shape == (12, 48)
     # The residual sees the 10 newest samples: a change 9 samples back moves it, 10 back does not.
     learned = back.forest
     q, dq, ddq = t.q[:30].copy(), t.dq[:30].copy(), t.ddq[:30].copy()
@@ -187,6 +189,12 @@ def test_grid_search_is_algorithm_1_and_resumes_from_its_storage(lab, tmp_path):
     again = tune(cfg, data, out, kind="D", method="grid", trials=50, space_path=sp, samples=1500)
     assert again["trials"] == r["trials"] and again["best_params"] == r["best_params"]
     assert again["search_s"] < r["search_s"]
+    # evaluate takes the search's best settings, refitted on its own samples, as a row of its table
+    ev = evaluate(cfg, data, tmp_path / "eval", train_samples=1500, large_samples=1500, curve=None, save_models=False,
+                  paper_variants=False, max_trees=20, tuned=[out])
+    assert "D_xgboost_tuned" in ev["mean_rmse_j123"]
+    assert "D_xgboost_tuned" in (tmp_path / "eval" / "table.md").read_text()
+    assert ev["models"]["D_xgboost_tuned"]["features"]["grouping"] == "full"  # D's own features, the tuned trees
 
 
 def test_bayes_search_with_two_worker_processes_shares_one_study(lab, tmp_path):
