@@ -18,7 +18,8 @@ import xgboost as xgb
 from cell.derivatives import CausalDerivatives, FilterConfig
 from cell.dynamics.features import DerivedOne, Group, WindowBuffer, derived_layout
 from cell.dynamics.learned import PHYSICS_PART, Forest, LearnedModel
-from cell.dynamics.nets import NetLearner, NetServe
+from cell.dynamics.nets import NetLearner
+from cell.dynamics.netserve import NetServe
 
 
 def _base_score(model_json: dict) -> float:

@@ -343,24 +343,6 @@ class NetLearner:
         return sum(int(v.size) for net in self.nets.values() for v in net.weights.values())
 
 
-class NetServe:
-    """The networks on one feature row (the served path): `predict(x)` like `FlatForest.predict`, with
-    `feature_maps[i]` the positions of group i's features in x."""
-
-    def __init__(self, learner: NetLearner, feature_maps: list[np.ndarray]) -> None:
-        self.learner = learner
-        self.maps = feature_maps
-        self.depth = 0
-        self.n_trees = 0
-        self.outputs = len(learner.outputs)
-
-    def predict(self, x: np.ndarray) -> np.ndarray:
-        L = self.learner
-        parts = [L.nets[gi].predict(x[fmap][None, :], L.params, g.window, len(g.base))[0]
-                 for gi, (g, fmap) in enumerate(zip(L.groups, self.maps, strict=True))]
-        return np.concatenate(parts).astype(np.float64)
-
-
 def flatten_nets(nets: dict[int, GroupNet]) -> dict[str, np.ndarray]:
     """The arrays of every group net under 'g<i>/<name>' (an .npz archive's keys)."""
     out: dict[str, np.ndarray] = {}
