@@ -23,15 +23,18 @@ def add_view_options(sp: Any, what: str) -> None:
 
 def live_view(robot: RobotModel, name: str, serve: bool, virtual_in_loop: bool) -> Any:
     """A RunView streaming to a spawned viewer or to a served web viewer."""
-    from cell.rerun_view import RunView, open_viewer
+    from cell.rerun_view import BackgroundView, RunView, open_viewer
 
-    return RunView(open_viewer(name, serve), robot, virtual_in_loop)
+    return BackgroundView(RunView(open_viewer(name, serve), robot, virtual_in_loop))
 
 
 def finish_view(view: Any, serve: bool) -> None:
     """Flush the stream; a served view lives in this process, so it stays up until Ctrl+C."""
     if view is None:
         return
+    close = getattr(view, "close", None)
+    if callable(close):
+        close()
     view.rec.flush()
     if serve:
         log.info("the view stays served until Ctrl+C")

@@ -12,6 +12,7 @@ series), `task/state` and `events` (text logs).  The timeline is `time`, the run
 from __future__ import annotations
 
 import logging
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,7 @@ import pyarrow as pa
 import rerun as rr
 
 from cell.robot import RobotModel
+from drivers.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +44,13 @@ def open_viewer(name: str, serve: bool) -> rr.RecordingStream:
         rr.serve_web_viewer(web_port=WEB_PORT, connect_to=url, open_browser=False)
         log.info("Rerun view served: open http://localhost:%d/?url=%s in a browser", WEB_PORT, quote(url, safe=""))
     else:
-        rec.spawn()
+        # The viewer ships in the rerun-sdk wheel, beside this interpreter: found even with the venv inactive.
+        beside = Path(sys.executable).with_name("rerun")
+        try:
+            rr.spawn(executable_path=str(beside) if beside.exists() else None, recording=rec)
+        except Exception as exc:  # no viewer binary, no display: say what to do instead
+            raise ConfigError(f"--view: cannot start the Rerun viewer ({str(exc).strip().splitlines()[0]}); on a "
+                              "machine without a display add --serve and open the printed URL") from None
     return rec
 
 
@@ -189,3 +197,51 @@ def write_rrd(run_dir: Path, table: pa.Table, robot: RobotModel, summary: Mappin
     rec.flush()
     rec.disconnect()
     return path
+
+
+class BackgroundView:
+    """A RunView fed from the control loop through a bounded queue and logged on its own thread: the
+    loop only enqueues a row (microseconds); when the viewer falls behind, rows are dropped, never waited for."""
+
+    def __init__(self, view: RunView, max_rows: int = 2000) -> None:
+        import queue
+        import threading
+
+        self.view = view
+        self.rec = view.rec
+        self.dropped = 0
+        self._q: queue.Queue[tuple[str, Any] | None] = queue.Queue(max_rows)
+        self._full = queue.Full
+        self._thread = threading.Thread(target=self._drain, name="rerun-view", daemon=True)
+        self._thread.start()
+
+    def row(self, row: Mapping[str, Any]) -> None:
+        self._put(("row", dict(row)))
+
+    def event(self, text: str, warn: bool = False) -> None:
+        self._put(("event", (text, warn)))
+
+    def _put(self, item: tuple[str, Any]) -> None:
+        try:
+            self._q.put_nowait(item)
+        except self._full:
+            self.dropped += 1
+
+    def _drain(self) -> None:
+        while (item := self._q.get()) is not None:
+            kind, payload = item
+            try:
+                if kind == "row":
+                    self.view.row(payload)
+                else:
+                    self.view.event(*payload)
+            except Exception as exc:  # the viewer's trouble ends the view, not the run
+                log.warning("live view stopped: %s", exc)
+                return
+
+    def close(self) -> None:
+        """Log what is queued, then stop the thread."""
+        self._q.put(None)
+        self._thread.join(timeout=30.0)
+        if self.dropped:
+            log.warning("live view: %d rows dropped (the viewer fell behind the loop)", self.dropped)
