@@ -1,4 +1,4 @@
-"""First use on a fresh clone: calibrate and plan without prepared artefacts prepare them (simulated cell) or say how."""
+"""First use on a fresh clone: calibrate and plan without prepared artefacts prepare them (sim) or say how."""
 
 from __future__ import annotations
 
