@@ -31,6 +31,9 @@ log = logging.getLogger(__name__)
 
 TUNABLE = ("D", "H1", "H2", "H3")
 VALIDATION_SHARE = 0.2
+# Sub-sampling draws whole segments; an excitation run is one segment of minutes, so a small sample would be
+# one stretch of one run.  Segments are cut into pieces of at most this many rows (2 s at 8 ms) first.
+CHUNK_SAMPLES = 250
 
 
 class WorkerLost(CellError):
@@ -52,6 +55,15 @@ class Job:
     nthread: int
     robot: str
     max_epochs: int | None = None
+
+
+def chunk_segments(segment: np.ndarray, length: int) -> np.ndarray:
+    """Segment ids with every run of equal ids cut into pieces of at most `length` rows (ids 0..k-1)."""
+    change = np.r_[True, segment[1:] != segment[:-1]]
+    rows = np.arange(len(segment))
+    first = np.maximum.accumulate(np.where(change, rows, 0))
+    key = (np.cumsum(change) - 1) * (len(segment) + 1) + (rows - first) // length
+    return np.unique(key, return_inverse=True)[1].astype(np.int64)
 
 
 def split_validation(s: Samples, share: float, seed: int) -> tuple[np.ndarray, np.ndarray, str]:
@@ -86,6 +98,7 @@ class Objective:
         # Split the whole training split by trajectory first, then cut each side to its share of `samples`
         # (whole moves): the held-out trajectories are never seen, not even in part, by the fit.
         s, self.sha = load_samples(job.dataset, "train", self.robot, "zero_phase", None, job.seed)
+        s.segment = chunk_segments(s.segment, CHUNK_SAMPLES)
         tr, va, self.unit = split_validation(s, VALIDATION_SHARE, job.seed)
         n_val = max(1, int(round(job.samples * VALIDATION_SHARE)))
         self.fit_rows = subsample_segments(s.take_rows(tr), job.samples - n_val, job.seed)
