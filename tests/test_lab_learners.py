@@ -26,7 +26,7 @@ from drivers.errors import ConfigError, DataError
 from tasks.lab_evaluate import evaluate
 from tasks.lab_robot import lab_robot
 from tasks.lab_train import TrainOptions, fit_model
-from tasks.lab_tune import split_validation, tune
+from tasks.lab_tune import chunk_segments, split_validation, tune
 from tasks.tune_space import load_space
 
 DT = 0.008
@@ -139,6 +139,9 @@ def test_validation_holds_out_whole_trajectories_of_the_training_family(lab):
     assert unit == "trajectories" and len(va) == 1000 and len(set(tr) & set(va)) == 0
     held = {int(np.searchsorted(s.starts, r, side="right")) - 1 for r in va}
     assert len(held) == 2  # two whole trajectories, not scattered rows
+    # a long excitation segment is cut into pieces before sub-sampling draws whole segments
+    seg = chunk_segments(np.r_[np.zeros(600, np.int64), np.ones(100, np.int64), np.zeros(10, np.int64)], 250)
+    assert list(np.bincount(seg)) == [250, 250, 100, 100, 10]
 
 
 def space(tmp_path: Path, text: str) -> Path:
