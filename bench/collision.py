@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,7 +20,7 @@ from cell.dynamics.learned import LearnedModel
 from cell.excitation.config import ExcitationConfig
 from cell.excitation.moves import random_moves
 from cell.force import SensorForceSource
-from cell.loop import Command, ControlLoop, Observation
+from cell.loop import Command, ControlLoop, Observation, OpenCell
 from cell.robot import RobotModel
 from cell.safety import SafetyMonitor
 from cell.signals import raise_if_interrupted
@@ -27,6 +28,7 @@ from drivers.interfaces import ArmState, Wrench
 from sim.cell import make_sim_cell
 from sim.mjcf import OBSTACLE_PLATE_KG
 from sim.obstacle import Obstacle
+from sim.plant import Plant
 
 log = logging.getLogger(__name__)
 
@@ -207,6 +209,22 @@ def _guard(cfg: CellConfig, model: LearnedModel, robot: RobotModel, reaction: st
                        np.asarray(cfg.virtual_sensor.wrench_point, float))
 
 
+def _settled_guard(cfg: CellConfig, model: LearnedModel, robot: RobotModel, reaction: str, cell: OpenCell,
+                   plant: Plant, settled: Callable[[], None] | None = None) -> Any:
+    """Let the arm settle at rest (0.3 s), call `settled` (zero a sensor), then give a fresh guard
+    0.15 s of the resting arm and zero its residual there."""
+    for _ in range(int(0.3 / cfg.loop.period_s)):
+        cell.ticker.wait()
+    if settled is not None:
+        settled()
+    guard = _guard(cfg, model, robot, reaction)
+    for _ in range(int(0.15 / cfg.loop.period_s)):
+        guard.detector.update(plant.measured_state())
+        cell.ticker.wait()
+    guard.rebias()
+    return guard
+
+
 def run_impact(cfg: CellConfig, robot: RobotModel, model: LearnedModel, draw: ImpactDraw,
                seed: int, reaction: str = "stop", tool: str = "peg") -> dict[str, Any] | None:
     """One scripted impact, or None when the plate, placed, already touches the arm."""
@@ -225,14 +243,7 @@ def run_impact(cfg: CellConfig, robot: RobotModel, model: LearnedModel, draw: Im
     cell = holder.open()
     try:
         tap = PeakTap(cell.force)  # type: ignore[arg-type]
-        for _ in range(int(0.3 / cfg.loop.period_s)):  # settle, then zero the sensor and the detector
-            cell.ticker.wait()
-        tap.rebias()
-        guard = _guard(cfg, model, robot, reaction)
-        for _ in range(int(0.15 / cfg.loop.period_s)):
-            guard.detector.update(plant.measured_state())
-            cell.ticker.wait()
-        guard.rebias()
+        guard = _settled_guard(cfg, model, robot, reaction, cell, plant, settled=tap.rebias)
         t0 = plant.t
         task = LineTask(robot, draw, cfg.loop.period_s)
         loop = ControlLoop(cell.arm, tap, task, SafetyMonitor(cfg.safety, robot, cfg.loop.period_s), cell.ticker,
@@ -287,13 +298,7 @@ def run_free_motion(cfg: CellConfig, robot: RobotModel, model: LearnedModel, sec
             holder.plant.reset(plan.start)
             cell = holder.open()
             try:
-                for _ in range(int(0.3 / dt)):
-                    cell.ticker.wait()
-                guard = _guard(cfg, model, robot, "monitor")
-                for _ in range(int(0.15 / dt)):
-                    guard.detector.update(holder.plant.measured_state())
-                    cell.ticker.wait()
-                guard.rebias()
+                guard = _settled_guard(cfg, model, robot, "monitor", cell, holder.plant)
                 loop = ControlLoop(cell.arm, cell.force, StreamTask(q), SafetyMonitor(cfg.safety, robot, dt),
                                    cell.ticker, None, dt, len(q) * dt + 1.0, guard=guard)
                 result = loop.run()

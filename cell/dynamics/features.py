@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -244,6 +245,18 @@ def group_matrix(
         out[:, group.window_width:] = extras[:, group.extra]
     return out
 
+
+
+def group_matrices(spec: FeatureSpec, group_list: list[Group], q: np.ndarray, dq: np.ndarray, ddq: np.ndarray,
+                   starts: np.ndarray | None, physics: np.ndarray | None = None,
+                   ) -> Iterator[tuple[int, Group, np.ndarray]]:
+    """(index, group, its feature matrix) for every group of a learner, built one at a time as asked
+    for: the inputs every learner (trees or networks) fits and predicts on."""
+    q, dq, ddq = np.atleast_2d(q), np.atleast_2d(dq), np.atleast_2d(ddq)
+    state = state_matrix(q, dq, ddq)
+    extras = derived(spec, q, dq, physics)
+    for i, g in enumerate(group_list):
+        yield i, g, group_matrix(g, state, starts, extras)
 
 class WindowBuffer:
     """Per-sample history for online prediction: push one state, gather every group's window features

@@ -14,7 +14,7 @@ import xgboost as xgb
 
 from cell.configio import join, require
 from cell.dynamics.base import ModelMeta
-from cell.dynamics.features import FeatureSpec, Group, derived, group_matrix, groups, state_matrix
+from cell.dynamics.features import FeatureSpec, Group, group_matrices, groups
 from cell.dynamics.nets import NetLearner, NetParams
 from cell.dynamics.physics import P2Model, robot_meta
 from cell.dynamics.uncertainty import Coverage, CoverageConfig
@@ -86,12 +86,9 @@ class Forest:
         """target: (N, n) torque (or residual) per joint; only the learned joints are used.
         physics: (N, n) torque the 'load' inputs are made of (see `physics_part`).
         `report(k, RMSE on the held-out segments)` after the k-th joint's booster (for pruning a search)."""
-        state = state_matrix(s.q, s.dq, s.ddq)
-        extras = derived(self.spec, s.q, s.dq, physics)
         train_rows, val_rows = _split_segments(s, params.validation_fraction, params.seed)
         t0 = time.perf_counter()
-        for g in self.groups:
-            X = group_matrix(g, state, s.starts, extras)
+        for _, g, X in group_matrices(self.spec, self.groups, s.q, s.dq, s.ddq, s.starts, physics):
             Xtr = X[train_rows] if val_rows is not None else X
             for j in g.outputs:
                 y = target[:, j].astype(np.float32)
@@ -120,12 +117,8 @@ class Forest:
     def predict(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, starts: np.ndarray | None,
                 physics: np.ndarray | None = None) -> np.ndarray:
         """(N, n) with NaN on joints that are not learned."""
-        q, dq, ddq = np.atleast_2d(q), np.atleast_2d(dq), np.atleast_2d(ddq)
-        state = state_matrix(q, dq, ddq)
-        extras = derived(self.spec, q, dq, physics)
-        out = np.full((state.shape[0], self.n), np.nan)
-        for g in self.groups:
-            X = group_matrix(g, state, starts, extras)
+        out = np.full((np.atleast_2d(q).shape[0], self.n), np.nan)
+        for _, g, X in group_matrices(self.spec, self.groups, q, dq, ddq, starts, physics):
             for j in g.outputs:
                 out[:, j] = self.boosters[j].inplace_predict(X)
         return out

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from cell.configio import join, require
-from cell.dynamics.features import FeatureSpec, Group, derived, group_matrix, groups, state_matrix
+from cell.dynamics.features import FeatureSpec, Group, group_matrices, groups
 from cell.samples import Samples
 
 log = logging.getLogger(__name__)
@@ -304,13 +304,10 @@ class NetLearner:
 
         params.validate("net")
         self.params = params
-        state = state_matrix(s.q, s.dq, s.ddq)
-        extras = derived(self.spec, s.q, s.dq, physics)
         tr, va = _split_segments(s, params.validation_fraction, params.seed)
         t0 = time.perf_counter()
         step = 0
-        for gi, g in enumerate(self.groups):
-            X = group_matrix(g, state, s.starts, extras)
+        for gi, g, X in group_matrices(self.spec, self.groups, s.q, s.dq, s.ddq, s.starts, physics):
             Y = target[:, list(g.outputs)].astype(np.float32)
 
             def rep(e: int, v: float, base: int = step) -> None:
@@ -326,12 +323,8 @@ class NetLearner:
     def predict(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, starts: np.ndarray | None,
                 physics: np.ndarray | None = None) -> np.ndarray:
         """(N, n) with NaN on joints that are not learned."""
-        q, dq, ddq = np.atleast_2d(q), np.atleast_2d(dq), np.atleast_2d(ddq)
-        state = state_matrix(q, dq, ddq)
-        extras = derived(self.spec, q, dq, physics)
-        out = np.full((state.shape[0], self.n), np.nan)
-        for gi, g in enumerate(self.groups):
-            X = group_matrix(g, state, starts, extras)
+        out = np.full((np.atleast_2d(q).shape[0], self.n), np.nan)
+        for gi, g, X in group_matrices(self.spec, self.groups, q, dq, ddq, starts, physics):
             out[:, list(g.outputs)] = self.nets[gi].predict(X, self.params, g.window, len(g.base))
         return out
 
