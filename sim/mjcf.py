@@ -12,7 +12,18 @@ import pinocchio as pin
 from cell.config import TOOLS, SceneConfig
 from sim.profile import LINKS, PlantProfile
 
+# The hole's wall: a ring of boxes whose inner faces are tangent to the bore.  A round peg touches only the
+# faces, so the polygon costs the fit r (1/cos(pi/n) - 1) of its clearance only: measured through the
+# collider, the bore's diameter errs by < 2 um at 32 segments (sim/peg_fit.py bore_error).  More, thinner
+# boxes do not help: a tilted peg on the mouth's edge then meets several boxes' top edges with opposing
+# contact normals, whose friction holds it (docs/peg-tight-fits.md).
 HOLE_WALL_SEGMENTS = 32
+# Peg-on-fixture contacts (the fixture's geoms carry priority: these win over the peg's own, the same today).
+# Time constant at twice the 1 ms physics step (MuJoCo's stability floor); at the task's 15 N push a wedged
+# peg penetrates 2.5-4 um, within a tenth of a 0.05 mm fit; at 80 N 7-12 um (docs/peg-tight-fits.md).  A
+# stiffer impedance (0.99) halves that but raised the survey's touch forces past the task's moment limit.
+FIT_SOLREF = "0.002 1"
+FIT_SOLIMP = "0.95 0.99 0.0005"
 PAD_MASS = 1.0  # kg: a spring-loaded wiping head; a lighter one chatters against the rigid table at 1 ms
 HOLE_WALL_THICKNESS = 0.012  # m, radial; wide enough to land a peg that is off by a few mm
 
@@ -118,7 +129,8 @@ def _table(scene: SceneConfig, profile: PlantProfile) -> str:
     )
 
 
-def _hole_fixture(scene: SceneConfig, profile: PlantProfile, tilt: tuple[float, float] = (0.0, 0.0)) -> str:
+def hole_fixture(scene: SceneConfig, friction: float, tilt: tuple[float, float] = (0.0, 0.0),
+                 segments: int = HOLE_WALL_SEGMENTS, solimp: str = FIT_SOLIMP) -> str:
     """A ring of boxes whose inner faces are tangent to the hole (no chamfer), and a bottom plate.
 
     `tilt` (rad, about world x then y, through the centre of the hole's mouth) tilts the whole
@@ -127,11 +139,12 @@ def _hole_fixture(scene: SceneConfig, profile: PlantProfile, tilt: tuple[float, 
     r_in = scene.hole_diameter / 2
     depth = scene.hole_depth
     top = scene.table_height
-    n = HOLE_WALL_SEGMENTS
+    n = segments
     t = HOLE_WALL_THICKNESS
     half_w = (r_in + t) * math.tan(math.pi / n) * 1.05
     geoms = [f'<body name="fixture" pos="{cx:.6g} {cy:.6g} {top:.6g}" euler="{tilt[0]:.9g} {tilt[1]:.9g} 0">']
-    contact = f'friction="{profile.tool.peg_friction:.6g} 0.005 0.0001" solref="0.002 1" solimp="0.95 0.99 0.0005"'
+    contact = (f'friction="{friction:.6g} 0.005 0.0001" priority="1" solref="{FIT_SOLREF}"'
+               f' solimp="{solimp}"')
     for i in range(n):
         a = 2 * math.pi * i / n
         x, y = (r_in + t / 2) * math.cos(a), (r_in + t / 2) * math.sin(a)
@@ -188,7 +201,7 @@ def build_mjcf(
     if scene.kind == "table":
         world = _table(scene, profile)
     elif scene.kind == "peg":
-        world = _hole_fixture(scene, profile, fixture_tilt)
+        world = hole_fixture(scene, profile.tool.peg_friction, fixture_tilt)
     # Bodies with joints of their own come after the arm: the plant takes the first six dofs as the arm's.
     after = _obstacles() if scene.kind == "obstacle" else ""
     # The servo's PD acts through position actuators so that MuJoCo integrates its stiffness and

@@ -106,6 +106,7 @@ class Plant:
         self._v6 = np.zeros(6)
         self._saved = np.empty(mujoco.mj_stateSize(self.model, STEP_STATE))
         self.recollided = 0  # physics steps taken again after a failed collision detection (_physics_step)
+        self.max_penetration = 0.0  # deepest contact [m] of any accepted physics step (the fit's error budget)
         # Called after every physics step (the collision bench's obstacle watches its contact forces).
         self.after_physics_step: collections.abc.Callable[[], None] | None = None
         tool = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "tool")
@@ -270,6 +271,8 @@ class Plant:
             self.recollided += 1
             log.debug("plant: a %.1f mm contact at t=%.3f s: step taken again with ccd_tolerance %g",
                       depth * 1e3, d.time, RECOLLIDE_TOLERANCE)
+            depth = -float(np.min(d.contact.dist[:d.ncon])) if d.ncon else 0.0
+        self.max_penetration = max(self.max_penetration, depth)
 
     def _wipe_friction(self, v_eps: float = 0.005) -> None:
         """Coulomb friction of the wiping head on the table, regularised below `v_eps` [m/s]:
