@@ -287,7 +287,10 @@ class DetectorSettings:
     sigma_factor: float = 6.0  # thresholds: this many model sigmas ...
     floor_nm: list[float] = field(default_factory=lambda: [1.5, 1.5, 1.5, 0.6, 0.6, 0.6])  # ... plus this
     payload_uncertainty_kg: float = 0.5  # payload error the thresholds tolerate
-    inertia_uncertainty: float = 0.2  # relative error of the inertial torque M(q) q'' (and its timing)
+    inertia_uncertainty: float = 0.5  # relative error of the inertial torque M(q) q''_cmd the thresholds allow
+    # The inertial term also takes the commanded acceleration over this many recent periods: the arm
+    # follows its targets a few periods late, and the measured acceleration's estimate lags further.
+    command_window_periods: int = 4
     stick_speed: float = 0.05  # rad/s: below it a joint's friction may hold anything in its static band
     coverage_min_count: float = 20.0  # training samples a (q, q', q'') cell needs before the model's own level applies
     confirm_periods: int = 1  # periods in a row over the threshold before it counts
@@ -309,6 +312,7 @@ class DetectorSettings:
         require(0 < self.wire_observer_gain <= 1000, f"{where}.wire_observer_gain", "must lie in (0, 1000] 1/s")
         require(1 <= self.wire_margin <= 10, f"{where}.wire_margin", "must lie in [1, 10]")
         require(1 <= self.confirm_periods <= 10, f"{where}.confirm_periods", "must lie in 1..10")
+        require(0 <= self.command_window_periods <= 50, f"{where}.command_window_periods", "must lie in 0..50")
         require(self.rebias_window_s > 0, f"{where}.rebias_window_s", "must be > 0")
 
 

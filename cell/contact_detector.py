@@ -6,7 +6,7 @@ momentum observer of its own, with a far higher bandwidth than the virtual senso
 for steady contact forces and filters short impacts away).  Per joint the threshold is
 
     thr_j = floor_j + sigma_factor * sigma_j(|q'_j|) + band_j * max(0, 1 - |q'_j| / stick_speed)
-            + inertia * |(M(q) q'')_j| + payload_kg * |g1_j(q) - g1_j(q_zero)|
+            + inertia * max(|(M(q) q'')_j|, |(M(q) q''_cmd)_j|) + payload_kg * |g1_j(q) - g1_j(q_zero)|
 
 * sigma_j: the model's one-sigma residual at that joint speed (the model lab's held-out levels, stored
   with the model; wider where the model is less sure, e.g. at high speed), and the physics part's
@@ -14,7 +14,12 @@ for steady contact forces and filters short impacts away).  Per joint the thresh
 * band_j: the joint's static friction band (the model's Coulomb level): a joint at or near rest holds
   whatever torque its friction allows, which no model of the state predicts;
 * inertia: the relative error of the rigid body's inertial torque (mass errors, and the measured
-  torque's latency against the joint positions, which shows while the arm accelerates);
+  torque's latency against the joint positions, which shows while the arm accelerates).  q'' is the
+  causal estimate from the measured speeds, q''_cmd the largest commanded acceleration of the last few
+  periods: the estimate lags a move's start by periods while the torques already change (the rigid
+  body's part of the residual acts through the momentum at once, the learned part through the lagging
+  estimate).  The command is the arm's intent, so an impact, which changes the measured motion but
+  not the command, does not widen its own threshold;
 * g1: the joint torques of 1 kg of payload at the tool's centre of mass (an unknown payload error
   moves the gravity torque by this per kg, relative to where the residual was last zeroed);
 * floor_j: what is left (quantisation, the servo's transients) and the configured margin.
@@ -27,6 +32,7 @@ short impact the task's filtered wrench would hide still counts.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 from dataclasses import dataclass
 from typing import Any
@@ -121,6 +127,9 @@ class CollisionDetector:
         self.force = np.zeros(3)
         self._q = np.zeros(self.n)
         self._last: ArmState | None = None
+        self._cmds: collections.deque[np.ndarray] = collections.deque(maxlen=3)
+        self._cmd_inertial: collections.deque[np.ndarray] = collections.deque(
+            maxlen=max(1, self.settings.command_window_periods))
 
     def rebias(self) -> None:
         """Zero the residual here (arm at rest, no contact): the payload term then counts from this pose."""
@@ -142,7 +151,11 @@ class CollisionDetector:
         if s.stick_speed > 0 and self.coverage is not None:
             thr += self.coverage.static_band * np.maximum(0.0, 1.0 - np.abs(dq) / s.stick_speed)
         if s.inertia_uncertainty > 0:
-            thr += s.inertia_uncertainty * np.abs(self.observer.inertial)
+            if self._cmd_inertial:
+                inertial = np.max(np.asarray(self._cmd_inertial), axis=0)
+            else:  # no command stream (a detector fed states only): the measured motion's
+                inertial = np.abs(self.observer.inertial)
+            thr += s.inertia_uncertainty * inertial
         if s.payload_uncertainty_kg > 0:
             g = self._payload_gravity(q)
             thr += s.payload_uncertainty_kg * np.abs(g - self._g_zero if self._zeroed else g)
@@ -164,6 +177,15 @@ class CollisionDetector:
         self.threshold = self.margin * self.thresholds(q, np.asarray(state.dq, float), self.observer.acceleration)
         self.force = self.wrench_map.map(q, self.residual).wrench[:3]
         return self.residual
+
+    def commanded(self, q_cmd: np.ndarray) -> None:
+        """The target just sent (rad): its second difference is the commanded acceleration."""
+        if self.settings.command_window_periods == 0:
+            return
+        self._cmds.append(np.array(q_cmd, float))
+        if len(self._cmds) == 3:
+            a = (self._cmds[2] - 2.0 * self._cmds[1] + self._cmds[0]) / self.dt**2
+            self._cmd_inertial.append(np.abs(self.observer.mass @ a))
 
     def check_free(self) -> np.ndarray:
         """Joints (0-based) over their thresholds for `confirm_periods` periods in a row."""

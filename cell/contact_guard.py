@@ -129,6 +129,10 @@ class ContactGuard:
     def rebias(self) -> None:
         self.detector.rebias()
 
+    def commanded(self, q_cmd: np.ndarray) -> None:
+        """The target the loop just sent (the detector widens its inertial term by its acceleration)."""
+        self.detector.commanded(q_cmd)
+
     def observe(self, state: ArmState, t: float, cycle: int, task_state: str) -> Detection | None:
         """Update the detector on this period's state; a new collision, or None."""
         d = self.detector

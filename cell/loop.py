@@ -245,6 +245,8 @@ class ControlLoop:
                 self.safety.check_command(cmd.q)
                 sent = self.arm.send_target(cmd.q)
                 q_cmd = sent.q
+                if self.guard is not None:
+                    self.guard.commanded(q_cmd)
                 if cmd.rebias_force:
                     self.force.rebias()
                     if self.guard is not None:

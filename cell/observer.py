@@ -244,6 +244,7 @@ class MomentumObserver:
         self._estimate = np.zeros(self.n)
         self.inertial = np.zeros(self.n)
         self.acceleration = np.zeros(self.n)
+        self.mass = np.zeros((self.n, self.n))  # M(q) + B_m at the last sample
 
     def update(self, state: ArmState) -> np.ndarray:
         q = np.asarray(state.q, float)
@@ -260,6 +261,7 @@ class MomentumObserver:
         g = pin.computeGeneralizedGravity(pm, pd, q)
         p = M @ v
         self.acceleration = a
+        self.mass = M
         self.inertial = M @ a  # the rigid body's inertial torque at the causal acceleration (for thresholds)
         if self.p0 is None:
             self.p0 = p

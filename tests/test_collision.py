@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from cell.config import CollisionConfig, DetectorSettings, TaskContactSafety
+from cell.config import CONFIG_DIR, CollisionConfig, DetectorSettings, TaskContactSafety
 from cell.configio import load_dataclass
 from cell.contact_guard import build_guard
 from cell.loop import Command, ControlLoop, Observation
@@ -141,6 +141,54 @@ def test_thresholds_widen_with_speed_sticking_coverage_and_payload(vs, model):
     d2 = _guard(vs, model, payload_uncertainty_kg=0.0).detector
     assert np.allclose(d.thresholds(q, moving, np.zeros(6)), d2.thresholds(q, moving, np.zeros(6)))
     assert d.thresholds(q_away, moving, np.zeros(6))[1] > d2.thresholds(q_away, moving, np.zeros(6))[1] + 0.5
+
+
+def test_commanded_acceleration_widens_the_inertial_term_and_a_cruise_adds_nothing(vs, model):
+    d = _guard(vs, model).detector
+    robot, dt = vs["robot"], vs["cfg"].loop.period_s
+    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    moving = np.full(6, 0.5)
+    d.update(ArmState(t=0.0, q=q, dq=np.zeros(6), tau=np.zeros(6)))
+    base = d.thresholds(q, moving, np.zeros(6))
+    v = np.array([0.0, 0.0, 0.3, 0.0, 0.5, 0.0])
+    for k in range(3):  # constant commanded speed: no commanded acceleration
+        d.commanded(q + k * v * dt)
+    assert np.allclose(d.thresholds(q, moving, np.zeros(6)), base)
+    a = np.array([0.0, 0.0, 0.0, 0.0, 40.0, 0.0])  # a move's start: joint 5 at 40 rad/s^2
+    d.commanded(q + 3 * v * dt + a * dt**2)
+    widened = d.thresholds(q, moving, np.zeros(6))
+    expect = d.settings.inertia_uncertainty * np.abs(d.observer.mass @ a)
+    assert widened[4] - base[4] == pytest.approx(expect[4], rel=1e-6)
+    assert expect[4] > 1.0
+    # ... for the servo's lag (command_window_periods), then the cruise again adds nothing.
+    last = q + 3 * v * dt + a * dt**2
+    for k in range(1, d.settings.command_window_periods + 2):
+        d.commanded(last + k * (v * dt + a * dt**2))
+    assert np.allclose(d.thresholds(q, moving, np.zeros(6)), base)
+
+
+def test_a_time_optimal_plan_starting_at_full_acceleration_is_not_a_collision(vs, model):
+    """`main.py plan`'s trajectory_3: toppra accelerates joints 3-5 from rest at 20-45 rad/s^2 within a
+    few periods, while the measured acceleration's estimate still reads a fraction of it."""
+    from cell.planner import ToppraPlanner, toppra_terms
+    from sim.cell import make_sim_cell
+    from tasks.plan import execute, load_plan_file
+
+    cfg, robot = vs["cfg"], vs["robot"]
+    plans = load_plan_file(CONFIG_DIR / "plans.yaml")
+    cfg = dataclasses.replace(cfg, safety=dataclasses.replace(cfg.safety, max_tcp_speed=plans.max_tcp_speed))
+    planner = ToppraPlanner(robot, model.predict, plans.planner, None, toppra_terms(model))
+    traj = planner.plan(np.radians(np.asarray(plans.paths["trajectory_3"], float)), np.full(6, 0.8))
+    assert np.max(np.abs(traj.ddq[:5])) > 20.0  # it does start hard
+
+    def open_cell():
+        holder = make_sim_cell(cfg, robot.limits, scene_kind="free", tool="wipe")
+        cell = holder.open()
+        return dataclasses.replace(cell, guard=lambda task, limit: _guard(vs, model)), holder
+
+    result = execute(traj, cfg, robot, open_cell)
+    assert result["outcome"] == "done", result.get("reason")
+    assert result["collision"]["detections"] == []
 
 
 def test_free_motion_is_quiet_and_a_push_is_caught_within_three_periods(vs, model):
