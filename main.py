@@ -22,6 +22,7 @@ from app.commands_doctor import add_doctor_parser
 from app.commands_figures import cmd_figures
 from app.commands_lab import cmd_calibrate, cmd_collect, cmd_evaluate, cmd_import, cmd_prepare, cmd_train
 from app.commands_plan import cmd_plan
+from app.commands_planning import add_planning_options
 from app.commands_replay import add_replay_parser
 from app.commands_tune import add_learner_parsers
 from app.sensing import FORCE_SOURCES, PREPARE_SAMPLES
@@ -193,7 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--reaction", choices=REACTIONS, default="stop", help="bench collision: the reaction to impacts")
     b.add_argument("--n", type=COUNT, default=500, help="samples (bench drivers)")
     b.add_argument("--data", default=None, help="dataset manifest (bench model)")
-    b.add_argument("--model", default=None, help="model artefact (bench model; default: train an H1)")
+    b.add_argument("--model", default=None, help="model artefact (bench model; default: train an H1; bench planning: "
+                   "default the prepared wipe model, 'nominal' the URDF's rigid body)")
     b.add_argument("--calls", type=COUNT, default=5000, help="single-sample predictions timed (bench model)")
     b.add_argument("--train-samples", type=int_in(100), default=24_000,
                    help="H1 training samples (bench model, no --model)")
@@ -202,6 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--nthread", type=NTHREAD, default=2)
     b.add_argument("--plant", default=None, help="plant profile YAML (bench plant)")
     robot_option(b, "bench model: the dataset's ")
+    add_planning_options(b)
     common(b)
     b.set_defaults(func=cmd_bench)
 

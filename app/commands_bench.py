@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from app.commands_planning import bench_planning_cmd, planning_tags
 from app.common import emit, load_cell_config, save_bench_summary
 from app.sensing import ensure_virtual_artefacts, make_force_source, with_guard
 from app.tasks_registry import robot_for
@@ -179,6 +180,9 @@ BENCHES: dict[str, Bench] = {
                        tags=_collision_tags),
     # Exit 1 when a compensated free-space force exceeds the target (0.5 N).
     "tool-gravity": Bench(_bench_tool_gravity, passed=lambda out: out["passed"]),
+    # Exit 1 when a plan of ours (the hybrid model's TOPP-RA) exceeded a torque limit on the plant.
+    "planning": Bench(bench_planning_cmd, passed=lambda out: out["torque_violations"]["model"] == 0,
+                      tags=planning_tags),
 }
 BENCH_NAMES = tuple(BENCHES)
 

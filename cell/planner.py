@@ -353,6 +353,35 @@ class UniformScalingPlanner(_Base):
         return traj
 
 
+class KinematicPlanner(ToppraPlanner):
+    """Baseline: TOPP-RA under joint speed and acceleration limits only (what MoveIt's TOTG or ruckig give an
+    integrator).  The torque model is not consulted: `cfg.acceleration_limits` must be set conservatively
+    enough for the arm's motors (bench/planning_calibration.py chooses them on the plant); `torque_scale`,
+    when given, scales those accelerations per joint (torque grows with acceleration)."""
+
+    name = "kinematic"
+
+    def plan(self, waypoints: np.ndarray, torque_scale: np.ndarray | None = None) -> TimedTrajectory:
+        t0 = time.perf_counter()
+        path = self.check_waypoints(waypoints)
+        alim = self.alim if torque_scale is None else self.alim * np.asarray(torque_scale, float)
+        vel = ta_con.JointVelocityConstraint(np.column_stack([-self.vlim, self.vlim]))
+        acc = ta_con.JointAccelerationConstraint(np.column_stack([-alim, alim]))
+        grid = np.linspace(0, 1, self.cfg.gridpoints + 1)
+        algo = ta_algo.TOPPRA([vel, acc], path.spline, gridpoints=grid, parametrizer="ParametrizeConstAccel")
+        _, sd, _ = algo.compute_parameterization(0.0, 0.0)
+        if sd is None or not np.all(np.isfinite(sd)):
+            raise PlanningError("no feasible timing under the joint speed and acceleration limits")
+        saved = self.alim
+        self.alim = alim  # `timed` re-checks the accelerations of the smoothed result against these
+        try:
+            traj = self.timed(path, grid, np.maximum(np.asarray(sd, float), 0.0))
+        finally:
+            self.alim = saved
+        traj.plan_time_s = time.perf_counter() - t0
+        return traj
+
+
 PLANNERS: dict[str, type[ToppraPlanner | UniformScalingPlanner]] = {
-    "toppra": ToppraPlanner, "uniform": UniformScalingPlanner,
+    "toppra": ToppraPlanner, "uniform": UniformScalingPlanner, "kinematic": KinematicPlanner,
 }

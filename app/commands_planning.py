@@ -1,0 +1,98 @@
+"""`main.py bench planning`: its options and its assembly (model, paths, plant runs) for bench/planning.py."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.cells import cell_identity, open_cell
+from app.common import load_cell_config
+from app.sensing import with_guard
+from app.tasks_registry import robot_for
+from cell.cliargs import int_in
+from cell.config import CONFIG_DIR
+from drivers.errors import ConfigError
+
+log = logging.getLogger("tmcell")
+PLANNING_PATHS = 20
+PPO_UPDATES = 300  # PPO rollouts of 32 paths: about a minute on one core (docs/planning.md)
+PLANS = CONFIG_DIR / "plans.yaml"  # the named paths and the planner settings `main.py plan` uses
+ARTEFACTS = Path("artifacts/planning")
+
+
+def add_planning_options(b: argparse.ArgumentParser) -> None:
+    """The bench parser's options for `bench planning` (main.py calls this beside its other bench options)."""
+    b.add_argument("--paths", type=int_in(1, 500), default=PLANNING_PATHS,
+                   help="bench planning: random collision-free paths besides the three named ones")
+    b.add_argument("--ppo-updates", type=int_in(1, 10_000), default=PPO_UPDATES,
+                   help="bench planning: PPO training updates when the stored policy is missing or differs")
+    b.add_argument("--no-guard", action="store_true",
+                   help="bench planning: run the plans without the collision guard (torques only; docs/planning.md)")
+
+
+def planning_tags(args: argparse.Namespace) -> list[str]:
+    tags = [f"{args.paths}paths"] if args.paths != PLANNING_PATHS else []
+    if args.ppo_updates != PPO_UPDATES:
+        tags.append(f"ppo{args.ppo_updates}")
+    return tags + (["noguard"] if args.no_guard else [])
+
+
+def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
+    """Assemble the bench: the prepared hybrid model, config/plans.yaml's planner settings and named paths,
+    and the simulated cell (guarded unless --no-guard) to execute each plan on."""
+    from app.commands_plan import NOMINAL, prepared_model, torque_model
+    from bench.planning import PlanningSetup, bench_planning
+    from cell.collision import CollisionChecker
+    from cell.planner import TimedTrajectory
+    from cell.ppo_planner import PpoSettings
+    from tasks.plan import execute, load_plan_file, measured_peak
+
+    cfg = load_cell_config(args)
+    plan_file = load_plan_file(PLANS)
+    cfg.safety = replace(cfg.safety, max_tcp_speed=plan_file.max_tcp_speed)  # as `main.py plan` runs them
+    robot = robot_for(cfg, "wipe")
+    model_path = None if args.model == NOMINAL else args.model or prepared_model(cfg, "sim")
+    predictor, model_name, terms = torque_model(cfg, robot, model_path)
+    effort = robot.limits.effort
+
+    def runner(guarded: bool) -> Any:
+        def open_for_plan() -> tuple[Any, Any]:
+            holder = open_cell(cfg, "sim", robot, args.seed, "free")
+            try:
+                cell = holder.open()
+                return (with_guard(cfg, "wipe", cell, robot) if guarded else cell), holder
+            except BaseException:
+                holder.close()
+                raise
+
+        def run(traj: TimedTrajectory) -> dict[str, Any]:
+            summary = execute(traj, cfg, robot, open_for_plan)
+            peak = measured_peak(summary.get("run_dir"), robot.n)
+            return {**summary, "peak_ratio": peak / effort}
+
+        return run
+
+    identity = {k: v for k, v in cell_identity(cfg, "sim", args.seed).items() if k != "seed"}  # noise only
+    settings = PpoSettings()
+    settings.ppo.updates = args.ppo_updates
+    setup = PlanningSetup(
+        robot=robot, torque_fn=predictor, terms=terms, model_name=model_name, pcfg=plan_file.planner,
+        named=plan_file.paths, collisions=CollisionChecker(robot, replace(cfg.scene, kind="free")),
+        run=runner(not args.no_guard),
+        # The calibration measures torques only: the guard cannot change them, and a false detection would
+        # cut a reference run short and bias the accelerations low (docs/planning.md).
+        calibration_run=runner(False),
+        safety_fraction=cfg.safety.joint_torque_fraction,
+        workspace=(np.asarray(cfg.safety.workspace_min, float), np.asarray(cfg.safety.workspace_max, float)),
+        artefacts=ARTEFACTS, arm_identity=identity,
+    )
+    if not np.isfinite(effort).all():
+        raise ConfigError("bench planning: the robot's URDF has no finite effort limits")
+    out = bench_planning(setup, args.paths, args.seed if args.seed is not None else 0, settings)
+    out["guarded"] = not args.no_guard
+    return out

@@ -1,0 +1,126 @@
+"""The kinematic baseline's joint accelerations, chosen on the plant the way a careful integrator would.
+
+A kinematic time-optimal parameterisation (TOTG, ruckig, toppra without torque) knows only joint speed
+and acceleration limits, and an integrator sets the accelerations once per arm, low enough that no
+motion exceeds a motor's torque.  Here: the per-joint *shape* is what each motor could give its joint
+alone at the joint's worst inertia on the reference paths (`effort_j / max M_jj(q)`, nominal URDF: what
+a datasheet gives), and one *fraction* of it is bisected (in log space) on the plant: the largest for
+which every reference path, planned kinematically, executes with every measured joint torque within
+`limit_fraction` of the motor limit (the same share the torque-aware planners plan to).
+
+The torque-aware planners get the same treatment (`calibrate_trust`): one share of their planning limit per
+arm, bisected on the same reference paths, since the model under-predicts the plant at the fastest motions.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cell.planner import KinematicPlanner, Planner, PlanningError, TimedTrajectory
+from cell.robot import RobotModel
+
+log = logging.getLogger(__name__)
+Run = Callable[[TimedTrajectory], dict[str, Any]]  # execute on the plant -> {"outcome", "peak_ratio", ...}
+
+
+def acceleration_shape(robot: RobotModel, qs: np.ndarray) -> np.ndarray:
+    """Per joint: effort / the largest diagonal inertia M_jj(q) over the configurations qs (rad/s^2)."""
+    n = robot.n
+    zero = np.zeros(n)
+    worst = np.zeros(n)
+    for q in qs:
+        g = robot.rnea(q, zero, zero)
+        for j in range(n):
+            e = np.zeros(n)
+            e[j] = 1.0
+            worst[j] = max(worst[j], float(robot.rnea(q, zero, e)[j] - g[j]))
+    return robot.limits.effort / np.maximum(worst, 1e-6)
+
+
+def reference_ok(plan: Callable[[np.ndarray], TimedTrajectory], ref: list[tuple[str, np.ndarray]], run: Run,
+                 limit_fraction: float) -> tuple[bool, list[dict[str, Any]]]:
+    """Plan and execute every reference path; stop at the first one over the limit."""
+    rows = []
+    for name, w in ref:
+        try:
+            traj = plan(w)
+        except PlanningError as exc:
+            rows.append({"path": name, "outcome": f"plan_failed: {exc}"})
+            return False, rows
+        res = run(traj)
+        peak = float(np.nanmax(res["peak_ratio"]))
+        rows.append({"path": name, "duration_s": traj.duration, "outcome": res["outcome"], "peak_ratio": peak})
+        if res["outcome"] != "done" or not peak <= limit_fraction:
+            return False, rows
+    return True, rows
+
+
+def bisect_fraction(plan_at: Callable[[float], Callable[[np.ndarray], TimedTrajectory]],
+                    ref: list[tuple[str, np.ndarray]], run: Run, limit_fraction: float, steps: int, lo: float,
+                    hi: float, what: str) -> tuple[float, list[dict[str, Any]]]:
+    """The largest fraction in (0, hi] (to `steps` log-bisections) whose plans `plan_at(f)` keep every reference run
+    within the limit; `lo` is halved until it does."""
+    checks: list[dict[str, Any]] = []
+
+    def ok(f: float) -> bool:
+        good, rows = reference_ok(plan_at(f), ref, run, limit_fraction)
+        checks.append({"fraction": f, "ok": good, "runs": rows})
+        log.info("%s calibration: fraction %.4f -> %s", what, f, "within the limits" if good else rows[-1])
+        return good
+
+    if ok(hi):
+        return hi, checks
+    while not ok(lo):
+        hi, lo = lo, lo / 2
+        if lo < 1e-3:
+            raise PlanningError(f"{what} calibration: even a fraction of 0.001 exceeds a limit")
+    for _ in range(steps):
+        mid = float(np.sqrt(lo * hi))
+        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+    return lo, checks
+
+
+def calibrate(make: Callable[[np.ndarray], KinematicPlanner], robot: RobotModel, ref: list[tuple[str, np.ndarray]],
+              run: Run, limit_fraction: float, steps: int = 6, lo: float = 0.05, hi: float = 1.0) -> dict[str, Any]:
+    """Bisect the fraction of `acceleration_shape` (see the module docstring); `make(acc)` builds the planner."""
+    qs = np.concatenate([make(np.ones(robot.n)).check_waypoints(w).eval(np.linspace(0, 1, 50))[0] for _, w in ref])
+    shape = acceleration_shape(robot, qs)
+    best, checks = bisect_fraction(lambda f: make(shape * f).plan, ref, run, limit_fraction, steps, lo, hi,
+                                   "kinematic")
+    return {"fraction": best, "shape": shape.round(3).tolist(), "acceleration_limits": (shape * best).round(3).tolist(),
+            "limit_fraction": limit_fraction, "reference_paths": [n for n, _ in ref], "checks": checks,
+            "executions": sum(len(c["runs"]) for c in checks)}
+
+
+def calibrate_trust(planner: Planner, ref: list[tuple[str, np.ndarray]], run: Run, limit_fraction: float,
+                    steps: int = 5, lo: float = 0.7, hi: float = 1.0) -> dict[str, Any]:
+    """The torque-aware planners' one setting per arm, found the same way on the same paths: the share of the
+    planning limit (`torque_scale`, all joints) the model may use so that the plant's torques stay within the
+    limit.  A model fitted on gentler motions under-predicts the torques of the fastest ones."""
+    n = planner.plan(ref[0][1]).q.shape[1]
+    best, checks = bisect_fraction(lambda f: lambda w: planner.plan(w, np.full(n, f)), ref, run, limit_fraction,
+                                   steps, lo, hi, "model trust")
+    return {"fraction": best, "limit_fraction": limit_fraction, "reference_paths": [n for n, _ in ref],
+            "checks": checks, "executions": sum(len(c["runs"]) for c in checks)}
+
+
+def load_or_calibrate(path: Path, key: dict[str, Any], calibrate_now: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    """The stored calibration when it was made for `key` (arm, model, limits), else a new one, stored."""
+    if path.exists():
+        stored = json.loads(path.read_text(encoding="utf-8"))
+        if stored.get("key") == key:
+            stored["loaded"] = True
+            return stored
+        log.warning("%s: calibrated for another arm or settings; calibrating again", path)
+    log.info("calibrating on the plant (once per arm and model; stored in %s)", path)
+    out = {"key": key, **calibrate_now()}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=1), encoding="utf-8")
+    out["loaded"] = False
+    return out
