@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from cell.config import CellConfig, SceneKind, check_home, check_task_force, resolve
+from cell.guarded import check_speeds
 from cell.robot import RobotModel, load_robot
 from drivers.errors import ConfigError
 
@@ -32,6 +33,7 @@ def _build_wipe(cfg: CellConfig, robot: RobotModel, section: str, force_source: 
     where = f"{cfg.source}: tasks.{section}"
     wcfg = load_wipe_config(cfg.tasks.get(section), where)
     check_task_force(cfg, section, wcfg.max_force_n)
+    check_speeds(cfg.collision.guarded, {"approach_speed_mps": wcfg.approach_speed_mps}, wcfg.max_force_n, where)
     try:
         task = WipeTask(wcfg, robot, cfg.scene.table_height, cfg.loop.period_s, np.asarray(cfg.robot.home))
     except ValueError as exc:

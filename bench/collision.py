@@ -354,6 +354,9 @@ def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wal
 
     rigid = [t for t in hits if t["rigid"]]
     soft = [t for t in hits if not t["rigid"]]
+    # Peak force per unit speed on the rigid plates: what guarded motion (cell/guarded.py) bounds speeds by.
+    per_speed = [t["peak_force_n"] / t["speed_mps"] for t in rigid]
+    impact = float(np.percentile(per_speed, 95)) if per_speed else None
     return {
         "seed": seed,
         "impacts": len(trials),
@@ -369,6 +372,8 @@ def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wal
         "ft_peak_n_p95_rigid": p95(rigid, "ft_peak_n"),
         "peak_force_n_max": float(np.max(peaks)) if peaks else None,
         "peak_force_n_rigid_025": float(np.max(rigid_025)) if rigid_025 else None,
+        "rigid_impact_n_per_mps_p95": impact,
+        "guarded_speed_mps_150n": 150.0 / impact if impact else None,
         "virtual_peak_ratio": float(np.median(ratios)) if ratios else None,
         "virtual_peak_ratio_p5": float(np.percentile(ratios, 5)) if ratios else None,
         "false_alarms": len(free["alarms"]) * (10.0 / minutes) if minutes > 0 else None,

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from cell.configio import join, load_dataclass, read_yaml, require, require_len
+from cell.guarded import GuardedSettings
 from drivers.errors import ConfigError
 
 TOOLS = ("wipe", "peg")  # the tools a cell config knows (virtual_sensor.by_tool keys)
@@ -344,6 +345,7 @@ class CollisionConfig:
     comply_time_s: float = 0.5  # comply: yield to the contact force this long, then stop
     comply_admittance: float = 0.002  # m/s per N of contact force (capped at retract_speed_mps)
     tasks: dict[str, TaskContactSafety] = field(default_factory=dict)
+    guarded: GuardedSettings = field(default_factory=GuardedSettings)  # the tasks' head-on speeds (cell/guarded.py)
 
     def validate(self, where: str) -> None:
         require(0 < self.retract_m <= 0.1, f"{where}.retract_m", "must lie in (0, 0.1] m")

@@ -296,7 +296,7 @@ def test_bench_collision_measures_impacts_and_free_motion(vs, model):
     out = bench_collision(vs["cfg"], vs["robot"], model, impacts=2, seed=3, free_s=4.0, tool="wipe")
     assert out["impacts"] == 2 and out["free_motion_s"] == pytest.approx(4.0, abs=0.1)
     for key in ("detection_latency_ms_p95", "peak_force_n_p95", "peak_force_n_max", "false_alarms",
-                "virtual_peak_ratio"):
+                "virtual_peak_ratio", "rigid_impact_n_per_mps_p95", "guarded_speed_mps_150n"):
         assert key in out
     for t in out["per_impact"]:
         if t["contact"]:
@@ -324,3 +324,29 @@ def test_over_a_wire_repeated_reads_are_skipped_and_thresholds_widen(vs, model):
     assert np.array_equal(wire.detector.residual, before)
     wire.detector.update(ArmState(t=6 * cfg.loop.period_s, q=q, dq=np.zeros(6), tau=tau + 2.5))
     assert not np.array_equal(wire.detector.residual, before)
+
+
+# ----------------------------------------------------------------------------------------- guarded motion
+def test_guarded_speed_bound_and_the_tasks_head_on_speeds(vs):
+    from app.tasks_registry import build_task
+    from cell.guarded import GuardedSettings, check_speeds
+
+    g = GuardedSettings(impact_n_per_mps=10_000.0)
+    assert g.speed_bound(80.0) == pytest.approx(0.008)
+    assert check_speeds(g, {"approach_speed_mps": 0.008}, 80.0, "x") == pytest.approx(0.008)
+    with pytest.raises(ConfigError, match=r"x\.approach_speed_mps: 9\.0 mm/s is faster than guarded motion allows "
+                                          r"\(8\.0 mm/s\).*80 N"):
+        check_speeds(g, {"approach_speed_mps": 0.009}, 80.0, "x")
+    check_speeds(dataclasses.replace(g, enabled=False), {"approach_speed_mps": 1.0}, 80.0, "x")
+    # The wipe's approach is held to it when the task is built: a stiffer measured impact refuses it.
+    cfg = vs["cfg"]
+    stiff = dataclasses.replace(cfg, collision=dataclasses.replace(
+        cfg.collision, guarded=GuardedSettings(impact_n_per_mps=50_000.0)))
+    build_task("wipe", cfg, vs["robot"])
+    with pytest.raises(ConfigError, match="tasks.wipe.approach_speed_mps"):
+        build_task("wipe", stiff, vs["robot"])
+
+
+def test_bad_guarded_settings_are_one_line_errors():
+    with pytest.raises(ConfigError, match="guarded.impact_n_per_mps"):
+        load_dataclass(CollisionConfig, {"guarded": {"impact_n_per_mps": 5}}, "collision")
