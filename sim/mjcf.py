@@ -130,7 +130,7 @@ def _table(scene: SceneConfig, profile: PlantProfile) -> str:
 
 
 def hole_fixture(scene: SceneConfig, friction: float, tilt: tuple[float, float] = (0.0, 0.0),
-                 segments: int = HOLE_WALL_SEGMENTS, solimp: str = FIT_SOLIMP) -> str:
+                 segments: int = HOLE_WALL_SEGMENTS, solimp: str = FIT_SOLIMP, solref: str = FIT_SOLREF) -> str:
     """A ring of boxes whose inner faces are tangent to the hole (no chamfer), and a bottom plate.
 
     `tilt` (rad, about world x then y, through the centre of the hole's mouth) tilts the whole
@@ -143,7 +143,7 @@ def hole_fixture(scene: SceneConfig, friction: float, tilt: tuple[float, float] 
     t = HOLE_WALL_THICKNESS
     half_w = (r_in + t) * math.tan(math.pi / n) * 1.05
     geoms = [f'<body name="fixture" pos="{cx:.6g} {cy:.6g} {top:.6g}" euler="{tilt[0]:.9g} {tilt[1]:.9g} 0">']
-    contact = (f'friction="{friction:.6g} 0.005 0.0001" priority="1" solref="{FIT_SOLREF}"'
+    contact = (f'friction="{friction:.6g} 0.005 0.0001" priority="1" solref="{solref}"'
                f' solimp="{solimp}"')
     for i in range(n):
         a = 2 * math.pi * i / n

@@ -42,14 +42,14 @@ def predicted_jam_depth(fit: Fit, tilt_rad: float) -> float:
     return c_eff / math.tan(tilt_rad) + fit.peg_d / 2 * math.sin(tilt_rad)
 
 
-def _fixture(fit: Fit, segments: int, solimp: str) -> str:
+def _fixture(fit: Fit, segments: int, solimp: str, solref: str) -> str:
     scene = SceneConfig(kind="peg", table_height=0.0, hole_center=[0.0, 0.0], hole_diameter=fit.hole_d,
                         hole_depth=fit.depth)
-    return mjcf.hole_fixture(scene, PEG_FRICTION, segments=segments, solimp=solimp)
+    return mjcf.hole_fixture(scene, PEG_FRICTION, segments=segments, solimp=solimp, solref=solref)
 
 
 def _rig(fit: Fit, segments: int, solimp: str, tilt_rad: float, x0: float, z0: float, mass: float,
-         damping: float = 0.0) -> mujoco.MjModel:
+         damping: float = 0.0, dt: float = PHYSICS_DT) -> mujoco.MjModel:
     """The fixture (mouth at z = 0, bore along z) and a peg body on slide joints along world x and z, held at
     `tilt_rad` about y: its origin is the centre of its bottom face, its axis leaning toward +x."""
     r, half = fit.peg_d / 2, fit.peg_length / 2
@@ -59,9 +59,9 @@ def _rig(fit: Fit, segments: int, solimp: str, tilt_rad: float, x0: float, z0: f
            f'<joint name="pz" type="slide" axis="0 0 1" damping="{damping:.6g}"/>'
            f'<geom name="peg" type="cylinder" pos="0 0 {half:.9g}" size="{r:.9g} {half:.9g}" mass="{mass:.6g}"'
            ' friction="0.25 0.005 0.0001" solref="0.002 1" solimp="0.95 0.99 0.0005"/></body>')
-    xml = (f'<mujoco><compiler angle="radian"/><option timestep="{PHYSICS_DT}" integrator="implicitfast"'
+    xml = (f'<mujoco><compiler angle="radian"/><option timestep="{dt}" integrator="implicitfast"'
            ' cone="elliptic" impratio="5" gravity="0 0 0"><flag multiccd="enable"/></option><size memory="20M"/>'
-           f"<worldbody>{_fixture(fit, segments, solimp)}{peg}</worldbody></mujoco>")
+           f"<worldbody>{_fixture(fit, segments, solimp, f'{2 * dt:.6g} 1')}{peg}</worldbody></mujoco>")
     return mujoco.MjModel.from_xml_string(xml)
 
 
@@ -79,7 +79,7 @@ class Wedge:
 
 def wedge(fit: Fit, tilt_deg: float, push_n: float = 15.0, side_n: float = 3.0, mass: float = 0.6,
           segments: int = mjcf.HOLE_WALL_SEGMENTS, solimp: str = mjcf.FIT_SOLIMP, feed_mps: float = 0.005,
-          sim_s: float | None = None) -> Wedge:
+          sim_s: float | None = None, dt: float = PHYSICS_DT) -> Wedge:
     """Push a peg held at `tilt_deg` down the hole with `push_n` (and `side_n` toward the side it leans on the
     mouth's edge) until it stops; where it stops against predicted_jam_depth, and the contacts' penetration.
 
@@ -95,17 +95,17 @@ def wedge(fit: Fit, tilt_deg: float, push_n: float = 15.0, side_n: float = 3.0, 
     x0 = x_side - r * math.cos(a) - s * math.sin(a)
     # Viscous slides: the push drives the peg at `feed_mps` in free motion, as the servo feeds the arm's peg
     # (a free 0.6 kg peg under 15 N would hit the wedge at metres per second).
-    m = _rig(fit, segments, solimp, a, x0, z0, mass, damping=push_n / feed_mps)
+    m = _rig(fit, segments, solimp, a, x0, z0, mass, damping=push_n / feed_mps, dt=dt)
     if sim_s is None:  # long enough to feed past the predicted wedge with room to settle
         sim_s = 0.4 + 1.5 * predicted_jam_depth(fit, a) / feed_mps
     d = mujoco.MjData(m)
     body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "peg")
     f6 = np.zeros(6)
-    steps = int(round(sim_s / PHYSICS_DT))
+    steps = int(round(sim_s / dt))
     pen = fmax = 0.0
     t0 = time.perf_counter()
     for k in range(steps):
-        ramp = min(1.0, (k + 1) / (0.1 / PHYSICS_DT))  # load up over 0.1 s (no impact at the start)
+        ramp = min(1.0, (k + 1) / (0.1 / dt))  # load up over 0.1 s (no impact at the start)
         d.xfrc_applied[body, :3] = [side_n * ramp, 0.0, -push_n * ramp]
         mujoco.mj_step(m, d)
         for i in range(d.ncon):

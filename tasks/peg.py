@@ -15,6 +15,7 @@ from cell.loop import Command, Observation
 from cell.robot import RobotModel
 from cell.trajectory import JointMove
 from tasks.base import MachineTask
+from tasks.peg_bore import BoreCentring
 from tasks.peg_compliance import comply, regulate, relieve, rotate_upright
 from tasks.peg_config import PegConfig
 from tasks.peg_contact import Contact, classify
@@ -67,6 +68,8 @@ class PegInHoleTask(MachineTask, PegTriggers):
         self.survey = Survey(cfg, dt, self.hole_xy, hole_top, self.lead)
         self.guard = GuardedDescent(cfg, dt)  # the survey's and the approach's touches
         self.search = WallSearch(cfg, dt)  # the slide's search phases
+        self.rc = (cfg.hole_diameter_m - cfg.peg_diameter_m) / 2  # nominal radial clearance
+        self.bore = BoreCentring(cfg, dt, self.rc)  # tight fits: the upright peg centred on the bore
         first = self.survey.poses[0] if self.survey.poses else self.start
         q_start, ok = robot.ik(first, q_home)
         if not ok:
@@ -350,6 +353,11 @@ class PegInHoleTask(MachineTask, PegTriggers):
             d = min(self._centre_left, c.centre_speed_mps * self.dt)
             self.ref.translation -= self.lead * d
             self._centre_left -= d
+            if self._centre_left <= 0 and self.rc <= c.bore_centring_below_m:
+                self.bore.begin(self.ref, self._tip)
+            return False
+        if self.bore.active:
+            self.bore.step(self.ref, self._tip)
             return False
         axis = self.ref.rotation[:, 2]
         m = math.hypot(mx, my) if np.isfinite(mx) and np.isfinite(my) else 0.0
@@ -358,7 +366,8 @@ class PegInHoleTask(MachineTask, PegTriggers):
             # builds (the hole's axis is not the peg's: a wedge ahead is far stiffer than the servo is fast).
             # Slowly near the mouth and after a stall (something stiff is ahead).
             slow = self.depth <= c.entry_depth_m or self.realigns > 0
-            v = min(c.entry_speed_mps, c.free_insert_speed_mps) if slow else c.free_insert_speed_mps
+            fast = c.free_insert_speed_mps if self.rc > c.bore_centring_below_m else c.tight_insert_speed_mps
+            v = min(c.entry_speed_mps, fast) if slow else fast
             side = max(0.0, m - c.comply_deadband_nm) / (c.side_moment_nm - c.comply_deadband_nm)
             self.ref.translation += axis * v * max(0.0, 1.0 - side) * self.dt
             self.law.reset()
@@ -374,6 +383,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
             # reflex: a wedge ahead; stop pushing into it before the law catches up
             relieve(self.ref, self._tip, self.law)
         comply(self.ref, mx, my, self.cfg, self.dt)
+        self.bore.hold(self.ref)
         self._depth_hist.append(self.depth)
         n = int(round(c.stall_s / self.dt))
         if len(self._depth_hist) > n and self._depth_hist[-1] - self._depth_hist[-1 - n] < c.stall_depth_m:
@@ -394,9 +404,12 @@ class PegInHoleTask(MachineTask, PegTriggers):
         if self.t_state < c.realign_time_s / 2:
             self.ref.translation -= self.ref.rotation[:, 2] * 2 * c.realign_lift_m * self.dt / c.realign_time_s
         comply(self.ref, mx, my, self.cfg, self.dt, scale=2.0)
+        self.bore.hold(self.ref)
         if self.t_state >= c.realign_time_s:
             self.law.reset()
             self._depth_hist = []
+            if self.rc <= c.bore_centring_below_m:
+                self.bore.begin(self.ref, self._tip)  # measure the bore again where the peg now is
             self.realigned()
         return False
 

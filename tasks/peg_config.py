@@ -100,6 +100,18 @@ class PegConfig:
     # of it left the peg rubbing the wall all the way in and dragging on it on the way out, 90-150 N spikes).
     wall_clearance_m: float | None = None
     centre_speed_mps: float = 0.002  # ... taken at this speed
+    # Tight fits (tasks/peg_bore.py): with a nominal radial clearance at or below this, the upright peg is
+    # centred on the bore by running it once round the wall before the feed, and again after each stall.
+    # The paper's 0.2 mm radial clearance is above it: the chord's centre is close enough there.
+    bore_centring_below_m: float = 0.0001
+    bore_orbit_press_m: float = 0.00006  # the orbit this much wider than the bore: presses the wall ~k_servo x this
+    bore_orbit_speed_mps: float = 0.001
+    bore_orbit_deg: float = 360.0  # the orbit's path recorded over this much of the circle
+    bore_radius_tolerance_m: float = 0.00003  # a free fit's radius this far from the radial clearance: not the bore
+    # The free feed at tight fits: a peg that meets a wedge at the feed's speed stops within the servo's reaction
+    # (~20 ms), so the peak force grows with the speed (225 N at 16 mm/s, a wedge 2.5 mm in at the 0.1 mm fit).
+    tight_insert_speed_mps: float = 0.006
+    bore_hold_fraction: float = 0.5  # the compliant lateral shift kept within this share of the radial clearance
     target_depth_m: float = 0.027  # success: the tip (face centre) this far below the mouth
     stall_s: float = 0.6  # depth gained less than stall_depth_m over this window: stuck
     stall_depth_m: float = 0.0003
@@ -166,6 +178,8 @@ class PegConfig:
                      "block_moment_nm", "max_slide_m", "chord_backoff_m", "chord_speed_mps", "chord_free_margin_m",
                      "min_probe_travel_m", "rotate_rate_dps", "rotate_max_force_n", "rotate_give_up_s",
                      "insert_speed_limit_mps", "free_insert_speed_mps", "centre_speed_mps", "entry_speed_mps",
+                     "bore_orbit_press_m", "bore_orbit_speed_mps", "tight_insert_speed_mps", "bore_radius_tolerance_m",
+                     "bore_hold_fraction", "bore_orbit_deg",
                      "entry_depth_m",
                      "stall_s", "stall_depth_m", "max_lead_m", "touch_lead_m", "touch_force_n", "comply_deadband_nm",
                      "realign_time_s", "realign_force_n", "realign_lift_m", "shift_gain",
