@@ -11,6 +11,7 @@ from bench.figures import Figure as F
 PEG = "main.py bench peg-in-hole --trials 50 --seed 1"
 PEG_SENSOR = f"{PEG} --force-source sensor"
 PEG_TIGHT = f"{PEG} --peg-diameter-mm 21.7"
+PEG_TIGHTER = f"{PEG} --peg-diameter-mm 21.75"
 COLLISION = "main.py bench collision --seed 11"
 PLANNING = "main.py bench planning --paths 20 --seed 1 (and 2) --json"
 MODEL = "main.py bench model --data artifacts/data/default/dataset.yaml --model artifacts/models/wipe"
@@ -41,8 +42,19 @@ FIGURES: tuple[F, ...] = (
       f"{PEG_SENSOR} --json"),
     F("peg-in-hole: surveyed vs true hole axis (deg)", "peg-in-hole-sensor", "max_axis_error_deg", "reported",
       f"{PEG_SENSOR} --json"),
-    F("peg-in-hole, 21.7 mm peg, virtual sensor: success rate", "peg-in-hole-d21.7mm", "success_rate", "reported",
+    # tight fits (docs/peg-tight-fits.md): 0.1 mm (21.7 mm peg) and 0.05 mm (21.75 mm) diametral clearance
+    F("peg-in-hole, 21.7 mm peg, virtual sensor: success rate", "peg-in-hole-d21.7mm", "success_rate", ">= 0.95",
       f"{PEG_TIGHT} --json"),
+    F("peg-in-hole, 21.7 mm peg, virtual sensor: median time (s)", "peg-in-hole-d21.7mm", "median_time_s", "<= 20",
+      f"{PEG_TIGHT} --json"),
+    F("peg-in-hole, 21.7 mm peg, virtual sensor: peak force (N)", "peg-in-hole-d21.7mm", "peak_force_n", "<= 80",
+      f"{PEG_TIGHT} --json"),
+    F("peg-in-hole, 21.75 mm peg, virtual sensor: success rate", "peg-in-hole-d21.75mm", "success_rate", ">= 0.8",
+      f"{PEG_TIGHTER} --json"),
+    F("peg-in-hole, 21.75 mm peg, virtual sensor: median time (s)", "peg-in-hole-d21.75mm", "median_time_s",
+      "reported", f"{PEG_TIGHTER} --json"),
+    F("peg-in-hole, 21.75 mm peg, virtual sensor: peak force (N)", "peg-in-hole-d21.75mm", "peak_force_n", "<= 80",
+      f"{PEG_TIGHTER} --json"),
     F("peg-in-hole, 21.7 mm peg, F/T sensor: success rate", "peg-in-hole-sensor-d21.7mm", "success_rate",
       "reported", f"{PEG_TIGHT} --force-source sensor --json"),
     F("peg-in-hole, one run (`./run.sh`): insertion time (s)", "run-peg-in-hole", "insertion_time_s", "<= 15",
