@@ -42,6 +42,7 @@ import pinocchio as pin
 
 from cell.config import DetectorSettings
 from cell.dynamics.learned import LearnedModel
+from cell.dynamics.uncertainty import Coverage
 from cell.observer import MomentumObserver
 from cell.robot import RobotModel
 from cell.wrench_map import JacobianMap
@@ -81,6 +82,21 @@ class Detection:
                 "force_n": [round(v, 2) for v in self.force_n]}
 
 
+def _beyond_coverage(coverage: Coverage | None, n: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per joint: the fastest trained speed (rad/s, the coverage grid's |q'| reach) and the physics
+    part's level in its speed bin; None without coverage."""
+    if coverage is None:
+        return None
+    v_max = np.full(n, np.inf)
+    js = coverage.joints
+    lo, hi = coverage.lo[:, 1], coverage.lo[:, 1] + coverage.bins * coverage.width[:, 1]
+    v_max[js] = np.maximum(np.abs(lo), np.abs(hi))
+    finite = np.where(np.isfinite(v_max), v_max, 0.0)
+    edge = coverage.sigma(finite[None, :], np.zeros((1, n)))[0] if coverage.blend else \
+        dataclasses.replace(coverage, blend=True).sigma(finite[None, :], np.zeros((1, n)))[0]
+    return v_max, edge
+
+
 class CollisionDetector:
     """Fast residual, thresholds and the tool force they imply, one control period at a time."""
 
@@ -101,6 +117,7 @@ class CollisionDetector:
         self._levels = (dataclasses.replace(model.coverage, blend=True, stick_speed=0.0)
                         if model.coverage is not None else None)
         self.floor = np.asarray(settings.floor_nm, float)
+        self._beyond = _beyond_coverage(model.coverage, n)
         self.margin = settings.wire_margin if over_wire else 1.0
         # Over a wire a single repeated or skipped read can swing the residual for one period.
         self.confirm = max(settings.confirm_periods, 2) if over_wire else settings.confirm_periods
@@ -148,6 +165,11 @@ class CollisionDetector:
             # Where the training data was sparse the hybrid's level does not hold: the physics part's does.
             w = self.coverage.weight_one(q, dq, ddq, min_count=s.coverage_min_count, stick=False)
             thr += s.sigma_factor * self._levels.sigma(dq[None, :], w[None, :])[0]
+        if self._beyond is not None:
+            # Beyond the joint speeds the model was trained at its error is unknown: the physics part's
+            # level at the trained edge, grown in proportion to the speed (a viscous-like error).
+            v_max, edge = self._beyond
+            thr += s.sigma_factor * edge * np.maximum(0.0, np.abs(dq) / v_max - 1.0)
         if s.stick_speed > 0 and self.coverage is not None:
             thr += self.coverage.static_band * np.maximum(0.0, 1.0 - np.abs(dq) / s.stick_speed)
         if s.inertia_uncertainty > 0:
@@ -185,7 +207,9 @@ class CollisionDetector:
         self._cmds.append(np.array(q_cmd, float))
         if len(self._cmds) == 3:
             a = (self._cmds[2] - 2.0 * self._cmds[1] + self._cmds[0]) / self.dt**2
-            self._cmd_inertial.append(np.abs(self.observer.mass @ a))
+            # Each entry of M may be off by its share: the bound is sum_k |M_jk| |a_k|, not |(M a)_j|
+            # (a wrist joint barely commanded still carries the errors of the base joints' coupling).
+            self._cmd_inertial.append(np.abs(self.observer.mass) @ np.abs(a))
 
     def check_free(self) -> np.ndarray:
         """Joints (0-based) over their thresholds for `confirm_periods` periods in a row."""

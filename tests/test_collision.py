@@ -143,6 +143,23 @@ def test_thresholds_widen_with_speed_sticking_coverage_and_payload(vs, model):
     assert d.thresholds(q_away, moving, np.zeros(6))[1] > d2.thresholds(q_away, moving, np.zeros(6))[1] + 0.5
 
 
+def test_beyond_the_trained_speeds_the_thresholds_grow_with_speed(vs, model):
+    d = _guard(vs, model).detector
+    robot = vs["robot"]
+    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    v_max, edge = d._beyond
+    assert np.all(np.isfinite(v_max)) and np.all(edge > 0)
+    plain = _guard(vs, model).detector
+    plain._beyond = None
+    # Within the trained reach nothing is added; at twice it, one edge level (x sigma_factor): the
+    # model's own levels stop at its fastest bin, and beyond the reach its error is unknown.
+    inside = 0.9 * v_max
+    assert np.allclose(d.thresholds(q, inside, np.zeros(6)), plain.thresholds(q, inside, np.zeros(6)))
+    twice = 2.0 * v_max
+    extra = d.thresholds(q, twice, np.zeros(6)) - plain.thresholds(q, twice, np.zeros(6))
+    assert np.allclose(extra, d.settings.sigma_factor * edge)
+
+
 def test_commanded_acceleration_widens_the_inertial_term_and_a_cruise_adds_nothing(vs, model):
     d = _guard(vs, model).detector
     robot, dt = vs["robot"], vs["cfg"].loop.period_s
