@@ -24,6 +24,7 @@ import numpy as np
 from bench.planning_calibration import calibrate, calibrate_trust, load_or_calibrate
 from cell.collision import CollisionChecker
 from cell.planner import (
+    GeometricPath,
     KinematicPlanner,
     Planner,
     PlannerConfig,
@@ -143,7 +144,11 @@ def run_once(planner: Planner, w: np.ndarray, s: PlanningSetup, scale: np.ndarra
         return {"outcome": "plan_failed", "reason": str(exc), "torque_violation": False}
     res = s.run(traj)
     peak = np.asarray(res["peak_ratio"], float)
+    vlim = s.robot.limits.velocity * s.pcfg.velocity_fraction
+    # the share of the motion some joint spends near (within 10 % of) its speed limit: little to gain there
+    at_speed = float(np.mean(np.max(np.abs(traj.dq) / vlim, axis=1) >= 0.9))
     return {"duration_s": traj.duration, "plan_time_s": traj.plan_time_s, "iterations": traj.iterations,
+            "speed_bound_share": at_speed,
             "outcome": res["outcome"], "elapsed_s": res.get("elapsed_s"), "reason": res.get("reason"),
             "peak_ratio": float(np.nanmax(peak)), "peak_ratio_per_joint": peak.round(3).tolist(),
             "torque_violation": bool(np.nanmax(peak) >= s.safety_fraction or res["outcome"] == "safety_stop"
@@ -168,6 +173,14 @@ def run_planner(planner: Planner, w: np.ndarray, s: PlanningSetup, scale: np.nda
             "final_scale": float(np.min(scale)), "final_run_dir": last.get("run_dir")}
 
 
+def speed_limit_time(path: GeometricPath, vlim: np.ndarray, samples: int = 2000) -> float:
+    """The path's duration at its joint-speed cap everywhere (infinite accelerations): no timing that keeps the
+    speed limits is shorter."""
+    s = np.linspace(0.0, 1.0, samples + 1)
+    cap = np.min(vlim[None, :] / np.maximum(np.abs(path.eval(s)[1]), 1e-9), axis=1)
+    return float(np.sum(np.diff(s) / (0.5 * (cap[:-1] + cap[1:]))))
+
+
 def pct(a: float, b: float) -> float:
     """How much shorter a is than b, in percent of b."""
     return 100.0 * (1.0 - a / b)
@@ -181,6 +194,8 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         # over the paths where both ran within the limits, each with its first such run
         "median_time_ratio": {p: float(np.nanmedian(dur[p] / dur["kinematic"])) for p in PLANNER_NAMES},
         "median_time_ratio_first_run": {p: float(np.nanmedian(first[p] / first["kinematic"])) for p in PLANNER_NAMES},
+        "median_time_ratio_speed_limit_only": float(np.nanmedian(
+            np.array([r.get("speed_limit_only_s", np.nan) for r in rows]) / dur["kinematic"])),
         # first runs (single shot at the per-arm setting) over a torque limit
         "torque_violations": {p: sum(bool(r[p].get("torque_violation")) for r in rows) for p in PLANNER_NAMES},
         "unvalidated_paths": {p: sum(r[p].get("validated_s") is None for r in rows) for p in PLANNER_NAMES},
@@ -191,6 +206,8 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
                              for p in PLANNER_NAMES},
         "plan_time_s_p95": {p: float(np.nanpercentile([r[p].get("plan_time_s", np.nan) for r in rows], 95))
                             for p in PLANNER_NAMES},
+        "speed_bound_share_median": {p: float(np.nanmedian([r[p].get("speed_bound_share", np.nan) for r in rows]))
+                                     for p in PLANNER_NAMES},
     }
     saving = np.array([pct(m, p) for m, p in zip(dur["model"], dur["ppo"], strict=True)])
     both = np.isfinite(saving)  # the paths where both have a run within the limits
@@ -211,6 +228,29 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def paper_setting(s: PlanningSetup, settings: PpoSettings, scale: np.ndarray,
+                  rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The paper's own setting: one PPO policy per named trajectory, trained on that path alone (as many updates
+    as the general policy), then planned, run and validated like the others; against the same path's uniform
+    and time-optimal plans."""
+    out: dict[str, Any] = {}
+    by_name = {r["path"]: r for r in rows}
+    for name, w_deg in s.named.items():
+        w = np.radians(w_deg)
+        one = PpoSettings(env=settings.env, ppo=settings.ppo, waypoints=settings.waypoints)
+        policy, meta = load_or_train(s.artefacts / f"ppo-{name}", s.robot, s.torque_fn, s.pcfg, s.terms, one,
+                                     s.model_name, only=w)
+        res = run_planner(PpoPlanner(s.robot, s.torque_fn, s.pcfg, policy, one, s.collisions, s.terms), w, s, scale)
+        row = by_name[name]
+        uniform, model, t = row["uniform"]["validated_s"], row["model"]["validated_s"], res["validated_s"]
+        out[name] = {"ppo_s": t, "first_run": {k: res.get(k) for k in ("duration_s", "outcome", "peak_ratio")},
+                     "reduction_vs_uniform_pct": pct(t, uniform) if t and uniform else None,
+                     "longer_than_model_pct": -pct(t, model) if t and model else None,
+                     "paper_reduction_pct": PAPER_IMPROVEMENT_PCT.get(name), "training_s": meta["training_s"]}
+        log.info("paper setting, %s: one-path policy %s s (uniform %s s, ours %s s)", name, t, uniform, model)
+    return out
+
+
 def bench_planning(s: PlanningSetup, count: int, seed: int, settings: PpoSettings) -> dict[str, Any]:
     """Calibrate (or load) the per-arm settings, train (or load) the policy, then plan and run every path."""
     kin = kinematic_limits(s)
@@ -223,8 +263,10 @@ def bench_planning(s: PlanningSetup, count: int, seed: int, settings: PpoSetting
     assert isinstance(checker, ToppraPlanner)
     paths = [(n, np.radians(w)) for n, w in s.named.items()] + random_paths(checker, count, seed, s.workspace)
     rows = []
+    vlim = s.robot.limits.velocity * s.pcfg.velocity_fraction
     for name, w in paths:
-        row: dict[str, Any] = {"path": name, "waypoints_deg": np.degrees(w).round(2).tolist()}
+        row: dict[str, Any] = {"path": name, "waypoints_deg": np.degrees(w).round(2).tolist(),
+                               "speed_limit_only_s": speed_limit_time(GeometricPath(w), vlim)}
         for p in PLANNER_NAMES:
             row[p] = run_planner(chosen[p], w, s, np.ones(s.robot.n) if p == "kinematic" else scale)
         log.info("%s: %s", name, ", ".join(f"{p} {row[p].get('duration_s', float('nan')):.3f} s "
@@ -233,6 +275,7 @@ def bench_planning(s: PlanningSetup, count: int, seed: int, settings: PpoSetting
                                             for p in PLANNER_NAMES))
         rows.append(row)
     out = summarise(rows)
+    out["paper_setting"] = paper_setting(s, settings, scale, rows)
     out.update({
         "model": s.model_name, "seed": seed, "paths": len(rows), "random_paths": count,
         "ppo_training_s": meta["training_s"], "ppo_trained_now": not meta.get("loaded", False),

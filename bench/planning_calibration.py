@@ -46,7 +46,7 @@ def acceleration_shape(robot: RobotModel, qs: np.ndarray) -> np.ndarray:
 def reference_ok(plan: Callable[[np.ndarray], TimedTrajectory], ref: list[tuple[str, np.ndarray]], run: Run,
                  limit_fraction: float) -> tuple[bool, list[dict[str, Any]]]:
     """Plan and execute every reference path; stop at the first one over the limit."""
-    rows = []
+    rows: list[dict[str, Any]] = []
     for name, w in ref:
         try:
             traj = plan(w)

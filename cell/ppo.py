@@ -154,7 +154,8 @@ def train(
 
 def save_policy(path: Path, params: Params, meta: dict[str, Any]) -> None:
     path.mkdir(parents=True, exist_ok=True)
-    np.savez(path / "policy.npz", **params)
+    with open(path / "policy.npz", "wb") as f:
+        np.savez(f, **params)  # type: ignore[arg-type]  # numpy's stub takes the keywords for allow_pickle
     (path / "policy.json").write_text(json.dumps({"format": FORMAT, **meta}, indent=1), encoding="utf-8")
 
 

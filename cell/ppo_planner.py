@@ -83,11 +83,15 @@ class PpoPlanner(ToppraPlanner):
 
 
 def training_paths(robot: RobotModel, vlim: np.ndarray, limit: np.ndarray, terms: ToppraTerms,
-                   settings: PpoSettings) -> Any:
-    """(rng, count) -> PathData of random workspace paths, the ones the policy learns on."""
+                   settings: PpoSettings, only: np.ndarray | None = None) -> Any:
+    """(rng, count) -> PathData of random workspace paths, the ones the policy learns on; with `only`, that
+    one path every time (the paper's setting: one policy per trajectory)."""
     lo, hi = settings.waypoints
+    fixed = None if only is None else path_data(GeometricPath(only).spline, vlim, limit, terms.inv_dyn, settings.env)
 
     def sample(rng: np.random.Generator, count: int) -> list[PathData]:
+        if fixed is not None:
+            return [fixed] * count
         out = []
         for _ in range(count):
             w = random_waypoints(rng, int(rng.integers(lo, hi + 1)))
@@ -98,17 +102,18 @@ def training_paths(robot: RobotModel, vlim: np.ndarray, limit: np.ndarray, terms
 
 
 def train_policy(robot: RobotModel, torque_fn: TorqueFn, cfg: PlannerConfig, terms: ToppraTerms | None,
-                 settings: PpoSettings, out: Path | None, model_name: str) -> tuple[Params, dict[str, Any]]:
+                 settings: PpoSettings, out: Path | None, model_name: str,
+                 only: np.ndarray | None = None) -> tuple[Params, dict[str, Any]]:
     """Train on the model (at the planning limit, torque_scale 1) and store the policy under `out`."""
     base = PpoPlanner(robot, torque_fn, cfg, {}, settings, None, terms)
     limit = base.torque_limit()
     env = SpeedEnvBatch(torque_fn, limit, settings.env)
-    sample = training_paths(robot, base.vlim, limit, base.terms, settings)
+    sample = training_paths(robot, base.vlim, limit, base.terms, settings, only)
     log.info("training the PPO planner on %s: %d updates x %d paths x %d knots", model_name,
              settings.ppo.updates, settings.ppo.n_envs, settings.env.knots)
     params, info = train(env, sample, obs_dim(settings.env, robot.n), settings.env.knots, settings.ppo)
     meta = {"model": model_name, "env": asdict(settings.env), "ppo": asdict(settings.ppo),
-            "planner": asdict(cfg), **info}
+            "planner": asdict(cfg), "only": None if only is None else np.asarray(only).round(6).tolist(), **info}
     if out is not None:
         save_policy(out, params, meta)
         log.info("PPO policy saved to %s (%.1f s of training)", out, info["training_s"])
@@ -116,13 +121,16 @@ def train_policy(robot: RobotModel, torque_fn: TorqueFn, cfg: PlannerConfig, ter
 
 
 def load_or_train(path: Path, robot: RobotModel, torque_fn: TorqueFn, cfg: PlannerConfig,
-                  terms: ToppraTerms | None, settings: PpoSettings, model_name: str) -> tuple[Params, dict[str, Any]]:
-    """The stored policy if it was trained for this model, environment and training budget, else a new one."""
+                  terms: ToppraTerms | None, settings: PpoSettings, model_name: str,
+                  only: np.ndarray | None = None) -> tuple[Params, dict[str, Any]]:
+    """The stored policy if it was trained for this model, environment, training budget and path set, else a
+    new one."""
     if (path / "policy.json").exists():
         params, meta = load_policy(path, obs_dim(settings.env, robot.n), settings.ppo.hidden)
+        want_only = None if only is None else np.asarray(only).round(6).tolist()
         if (meta.get("model") == model_name and meta.get("env") == asdict(settings.env)
-                and meta.get("ppo") == asdict(settings.ppo)):
+                and meta.get("ppo") == asdict(settings.ppo) and meta.get("only") == want_only):
             meta["loaded"] = True
             return params, meta
         log.warning("%s: the stored policy was trained for another model or settings; retraining", path)
-    return train_policy(robot, torque_fn, cfg, terms, settings, path, model_name)
+    return train_policy(robot, torque_fn, cfg, terms, settings, path, model_name, only)

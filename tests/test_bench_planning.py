@@ -14,13 +14,15 @@ from main import main
 
 PATH = np.radians([[0, -30, 90, 0, 90, 0], [60, 10, 60, -30, 90, 30], [120, 30, 30, 0, 90, 0]])
 KEYS = {"median_time_ratio", "torque_violations", "plan_time_s_p95", "ppo_training_s", "model_vs_ppo",
-        "collision_stops", "kinematic_acceleration_limits", "per_path", "reduction_vs_uniform_median_pct"}
+        "collision_stops", "kinematic_acceleration_limits", "per_path", "reduction_vs_uniform_median_pct",
+        "paper_setting", "unvalidated_paths", "median_time_ratio_first_run", "model_trust"}
 
 
 def row(path: str, times: dict[str, float], violation: str | None = None) -> dict:
     return {"path": path, **{p: {"duration_s": t, "plan_time_s": 0.01 * t, "outcome": "done", "peak_ratio": 0.5,
                                  "torque_violation": p == violation, "rounds": 1 + (p == violation),
-                                 "validated_s": t * (1.1 if p == violation else 1.0)} for p, t in times.items()}}
+                                 "speed_bound_share": 0.5, "validated_s": t * (1.1 if p == violation else 1.0)}
+                             for p, t in times.items()}}
 
 
 def test_the_summary_takes_medians_over_the_kinematic_baseline_and_counts_violations():
@@ -49,7 +51,7 @@ def test_the_calibration_finds_the_largest_acceleration_fraction_within_the_limi
         return {"outcome": "done" if peak < 0.9 else "safety_stop", "peak_ratio": np.full(6, peak)}
 
     def make(acc):
-        return KinematicPlanner(robot, None, PlannerConfig(acceleration_limits=list(acc), velocity_fraction=0.75))
+        return KinematicPlanner(robot, robot.rnea, PlannerConfig(acceleration_limits=list(acc), velocity_fraction=0.75))
 
     from bench.planning_calibration import acceleration_shape
 
@@ -105,5 +107,6 @@ def test_a_small_bench_runs_every_planner_on_the_plant_and_reports_its_keys(monk
         assert set(out[key]) == set(PLANNER_NAMES)
     assert out["ppo_trained_now"] and out["ppo_training_s"] > 0
     assert out["median_time_ratio"]["kinematic"] == 1.0
+    assert set(out["paper_setting"]) == {"trajectory_1", "trajectory_2", "trajectory_3"}
     assert all(r[p]["outcome"] in ("done", "safety_stop", "collision", "plan_failed") for r in out["per_path"]
                for p in PLANNER_NAMES)
