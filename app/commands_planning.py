@@ -59,6 +59,8 @@ def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
     model_path = None if args.model == NOMINAL else args.model or prepared_model(cfg, "sim")
     predictor, model_name, terms = torque_model(cfg, robot, model_path)
     effort = robot.limits.effort
+    if not np.all(np.isfinite(effort) & (effort > 0)):
+        raise ConfigError("bench planning: the robot's URDF has no finite effort limits")
 
     def runner(guarded: bool) -> Any:
         def open_for_plan() -> tuple[Any, Any]:
@@ -91,8 +93,6 @@ def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
         workspace=(np.asarray(cfg.safety.workspace_min, float), np.asarray(cfg.safety.workspace_max, float)),
         artefacts=ARTEFACTS, arm_identity=identity,
     )
-    if not np.isfinite(effort).all():
-        raise ConfigError("bench planning: the robot's URDF has no finite effort limits")
     out = bench_planning(setup, args.paths, args.seed if args.seed is not None else 0, settings)
     out["guarded"] = not args.no_guard
     return out

@@ -129,7 +129,8 @@ class TimedTrajectory:
 
 
 class Planner(Protocol):
-    """Pluggable planner (a learned PPO-style planner can implement this for comparison)."""
+    """Pluggable planner: ToppraPlanner (ours), UniformScalingPlanner, KinematicPlanner, and the paper's PPO
+    planner (cell/ppo_planner.py), compared by bench/planning.py."""
 
     name: str
 
