@@ -1,7 +1,7 @@
 """A compact PPO (clipped surrogate, GAE, Gaussian policy) on jax + optax, for the path-speed planner.
 
 Why not sbx or stable-baselines3: `pip install sbx-rl` resolves to stable-baselines3 -> torch 2.14 with
-14 nvidia-* CUDA 13 wheels and triton (several GB) on a plain Linux install, which CI (fresh machine, 20 min,
+15 nvidia-* CUDA 13 wheels and triton (several GB) on a plain Linux install, which CI (fresh machine, 20 min,
 2 cores) cannot afford, and the CPU-only torch index cannot be named from pyproject for a plain
 `pip install -e .[test]`.  jax and optax are already dependencies (the model lab's learners); the algorithm is
 the standard one (Schulman et al. 2017, with the usual defaults of the maintained implementations:
