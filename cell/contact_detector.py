@@ -168,8 +168,10 @@ class CollisionDetector:
         if self._beyond is not None:
             # Beyond the joint speeds the model was trained at its error is unknown: the physics part's
             # level at the trained edge, grown in proportion to the speed (a viscous-like error).
+            # Any joint beyond its reach takes every joint out of the model's experience (the coupling and
+            # velocity-product torques of a fast joint load the others), so the largest excess counts.
             v_max, edge = self._beyond
-            thr += s.sigma_factor * edge * np.maximum(0.0, np.abs(dq) / v_max - 1.0)
+            thr += s.sigma_factor * edge * max(0.0, float(np.max(np.abs(dq) / v_max)) - 1.0)
         if s.stick_speed > 0 and self.coverage is not None:
             thr += self.coverage.static_band * np.maximum(0.0, 1.0 - np.abs(dq) / s.stick_speed)
         if s.inertia_uncertainty > 0:

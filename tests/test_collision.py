@@ -151,12 +151,14 @@ def test_beyond_the_trained_speeds_the_thresholds_grow_with_speed(vs, model):
     assert np.all(np.isfinite(v_max)) and np.all(edge > 0)
     plain = _guard(vs, model).detector
     plain._beyond = None
-    # Within the trained reach nothing is added; at twice it, one edge level (x sigma_factor): the
-    # model's own levels stop at its fastest bin, and beyond the reach its error is unknown.
+    # Within the trained reach nothing is added; at twice it, one edge level (x sigma_factor) on every
+    # joint: the model's own levels stop at its fastest bin, and beyond the reach its error is unknown.
     inside = 0.9 * v_max
     assert np.allclose(d.thresholds(q, inside, np.zeros(6)), plain.thresholds(q, inside, np.zeros(6)))
-    twice = 2.0 * v_max
-    extra = d.thresholds(q, twice, np.zeros(6)) - plain.thresholds(q, twice, np.zeros(6))
+    # One joint at twice its reach takes every joint out of the model's experience.
+    one_fast = inside.copy()
+    one_fast[0] = 2.0 * v_max[0]
+    extra = d.thresholds(q, one_fast, np.zeros(6)) - plain.thresholds(q, one_fast, np.zeros(6))
     assert np.allclose(extra, d.settings.sigma_factor * edge)
 
 
