@@ -38,11 +38,12 @@ class PegInHoleTask(MachineTask, PegTriggers):
     that hole frame (`T`: world = T * hole frame; the task's poses, depths and tilts are hole-frame), so a
     tilted hole is entered, centred and pushed into along its own axis.
 
-    Entry (a classic for chamferless tight holes): the peg is tilted so the lowest point of its bottom rim leads;
-    placed over the nominal hole centre, that point drops into the hole for any lateral error well inside the
-    hole's radius, and the face comes to rest on the far rim (stuck inside, told by the kinematic depth and Fz,
-    not by a rim moment).  The peg then slides toward the lead side until the wall blocks it, rotates upright
-    about the wall contact, and is pushed in under the impedance law with compliance to (Mx, My).
+    Entry (a classic for chamferless tight holes): the peg is tilted so the lowest point of its bottom
+    rim leads; placed over the nominal hole centre, that point drops into the hole for any lateral error
+    well inside the hole's radius, and the face comes to rest on the far rim (stuck inside, told by the
+    kinematic depth and Fz, not by a rim moment).  The peg then slides toward the lead side until the
+    wall blocks it, rotates upright about the wall contact, and is pushed in under the impedance law with
+    rotational and lateral compliance to (Mx, My).
     """
 
     name = "peg-in-hole"
@@ -391,7 +392,6 @@ class PegInHoleTask(MachineTask, PegTriggers):
                                   f"realignments (Fz {fz:.1f} N, |M| {math.hypot(mx, my):.2f} N·m)")
                 return False
             self.realigns += 1
-            self.bore.stalled_at(self.depth)  # the realignment's lift (kept inside a shallow tight bore)
             log.info("peg-in-hole: stalled at %.1f mm: realignment %d", self.depth * 1e3, self.realigns)
             self.ref.translation[:] = self._tip.translation  # drop the wound-up push
             self.law.reset()
@@ -402,7 +402,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
         c = self.cfg
         self._setpoint = c.realign_force_n
         if self.t_state < c.realign_time_s / 2:
-            self.ref.translation -= self.ref.rotation[:, 2] * 2 * self.bore.lift * self.dt / c.realign_time_s
+            self.ref.translation -= self.ref.rotation[:, 2] * 2 * c.realign_lift_m * self.dt / c.realign_time_s
         comply(self.ref, mx, my, self.cfg, self.dt, scale=2.0)
         self.bore.hold(self.ref)
         if self.t_state >= c.realign_time_s:

@@ -62,7 +62,6 @@ class BoreCentring:
         self._radius = 0.0
         self._path: list[np.ndarray] = []
         self._target: np.ndarray | None = None  # after the orbit: where the reference goes (the fitted centre)
-        self.lift = cfg.realign_lift_m  # a stalled peg's realignment lifts it this far
 
     def begin(self, ref: pin.SE3, tip: pin.SE3) -> None:
         """Start (again) from the measured tip: the reference drops any wound-up push and lateral lead."""
@@ -110,12 +109,6 @@ class BoreCentring:
             self.centre = centre
         self._target = self.centre if self.centre is not None else self._c0.copy()
         return "centring"
-
-    def stalled_at(self, depth: float) -> None:
-        """The realignment's lift after a stall at `depth`: at a tight fit at most half the depth -- the full
-        0.5 mm lifted a peg stalled 0.5-1 mm in out of the 0.05 mm bore, and it never found it again."""
-        tight = self.rc <= self.cfg.bore_centring_below_m
-        self.lift = min(self.cfg.realign_lift_m, max(depth, 0.0) / 2) if tight else self.cfg.realign_lift_m
 
     def hold(self, ref: pin.SE3) -> None:
         """Keep the reference's compliant lateral shift within `bore_hold_fraction` of the radial clearance of the

@@ -81,14 +81,3 @@ def test_the_paper_geometry_does_not_engage_the_tight_fit_centring(cfg):
     assert (pcfg.hole_diameter_m - pcfg.peg_diameter_m) / 2 > pcfg.bore_centring_below_m
     for peg in (0.0217, 0.02175):
         assert (pcfg.hole_diameter_m - peg) / 2 <= pcfg.bore_centring_below_m
-
-
-def test_a_tight_fit_stalled_shallow_is_not_lifted_out_of_the_bore():
-    tight = BoreCentring(PegConfig(peg_diameter_m=0.02175), DT, 0.000025)
-    tight.stalled_at(0.0006)
-    assert tight.lift == pytest.approx(0.0003)
-    tight.stalled_at(0.010)
-    assert tight.lift == pytest.approx(PegConfig().realign_lift_m)
-    paper = BoreCentring(PegConfig(), DT, 0.0002)  # the paper's fit keeps its lift
-    paper.stalled_at(0.0006)
-    assert paper.lift == pytest.approx(PegConfig().realign_lift_m)
