@@ -364,8 +364,8 @@ class PegInHoleTask(MachineTask, PegTriggers):
         if not (np.isfinite(fz) and fz >= c.contact_force_n):
             # Nothing pushes back: feed at a fixed speed (not through the law), slowing as a side load
             # builds (the hole's axis is not the peg's: a wedge ahead is far stiffer than the servo is fast).
-            # Slowly near the mouth and after a stall (something stiff is ahead).
-            slow = self.depth <= c.entry_depth_m or self.realigns > 0
+            # Slowly near the mouth, and after a stall (a wedge ahead) unless the fit is tight (bore re-measured).
+            slow = self.depth <= c.entry_depth_m or (self.realigns > 0 and self.rc > c.bore_centring_below_m)
             fast = c.free_insert_speed_mps if self.rc > c.bore_centring_below_m else c.tight_insert_speed_mps
             v = min(c.entry_speed_mps, fast) if slow else fast
             side = max(0.0, m - c.comply_deadband_nm) / (c.side_moment_nm - c.comply_deadband_nm)
