@@ -41,6 +41,16 @@ def _build_wipe(cfg: CellConfig, robot: RobotModel, section: str, force_source: 
     return task, wcfg.max_duration_s
 
 
+def peg_head_on_speeds(p: Any) -> dict[str, float]:
+    """The peg's speeds toward a face it may meet head-on (cell/guarded.py), wedges in the bore included.
+    Not bounded: the survey's moves between touch points (above the nominal face by more than its tilt
+    allows), and the free feed deeper than a peg can wedge (mu x D, `wedge_friction`), where the walls
+    are sliding contacts."""
+    return {name: getattr(p, name) for name in (
+        "approach_speed_mps", "slow_speed_mps", "survey_speed_mps", "slide_slow_speed_mps", "chord_speed_mps",
+        "entry_speed_mps", "centre_speed_mps", "wedge_speed_mps", "tight_insert_speed_mps")}
+
+
 def _build_peg(cfg: CellConfig, robot: RobotModel, section: str, force_source: str) -> tuple[Any, float]:
     from tasks.peg import PegInHoleTask
     from tasks.peg_config import load_peg_config
@@ -48,6 +58,7 @@ def _build_peg(cfg: CellConfig, robot: RobotModel, section: str, force_source: s
     where = f"{cfg.source}: tasks.{section}"
     pcfg = load_peg_config(cfg.tasks.get(section), where, force_source)
     check_task_force(cfg, section, pcfg.max_force_n)
+    check_speeds(cfg.collision.guarded, peg_head_on_speeds(pcfg), pcfg.max_force_n, where)
     try:
         task = PegInHoleTask(pcfg, robot, np.asarray(cfg.scene.hole_center, float), cfg.scene.table_height,
                              cfg.loop.period_s, np.asarray(cfg.robot.home))

@@ -367,7 +367,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
             # Slowly near the mouth, and after a stall (a wedge ahead) unless the fit is tight (bore re-measured).
             slow = self.depth <= c.entry_depth_m or (self.realigns > 0 and self.rc > c.bore_centring_below_m)
             fast = c.free_insert_speed_mps if self.rc > c.bore_centring_below_m else c.tight_insert_speed_mps
-            v = min(c.entry_speed_mps, fast) if slow else fast
+            v = min(c.entry_speed_mps, fast) if slow else c.feed_speed(self.depth, fast)
             side = max(0.0, m - c.comply_deadband_nm) / (c.side_moment_nm - c.comply_deadband_nm)
             self.ref.translation += axis * v * max(0.0, 1.0 - side) * self.dt
             self.law.reset()

@@ -17,7 +17,7 @@ class PegConfig:
     entry_tilt_deg: float = 12.0  # peg tilt for the entry: its lowest rim point leads into the hole
     lead_direction_deg: float = 180.0  # world-xy direction of the lowest rim point from the peg axis
     approach_height_m: float = 0.006  # start: lowest rim point this high above the nominal mouth
-    approach_speed_mps: float = 0.01
+    approach_speed_mps: float = 0.007  # under guarded motion's bound (cell/guarded.py: 70 N / 9300 N per m/s)
     slow_height_m: float = 0.0015  # below this (lowest point above the mouth), approach slowly (stiff contact)
     slow_speed_mps: float = 0.0015
     max_approach_m: float = 0.015  # travel below the approach start with no contact: fail
@@ -94,6 +94,11 @@ class PegConfig:
     # mouth's edge (at 5 mm/s over 4 mm, spikes up to 95-101 N in 50 trials; at 3 mm/s over 2 mm, <= 71 N).
     entry_speed_mps: float = 0.003
     entry_depth_m: float = 0.002
+    # A peg can wedge only while it is shallower than about mu x D (Whitney's two-point-contact analysis);
+    # a wedge met at the feed's speed is a head-on hit (a 182 N spike 2.4 mm in at 16 mm/s), so the feed
+    # stays at guarded motion's speed until then.  mu: the nominal peg-on-bore friction of the materials.
+    wedge_friction: float = 0.25
+    wedge_speed_mps: float = 0.007
     hole_diameter_m: float = 0.0218  # the nominal hole (paper: 21.8 mm); with the peg, the nominal clearance
     # Upright with the lead side on the wall: step this far off it.  Default: the nominal radial clearance
     # (hole - peg) / 2, which puts the peg's axis on the hole's (0.2 mm for the paper's 21.4 in 21.8; half
@@ -149,6 +154,10 @@ class PegConfig:
     max_duration_s: float = 40.0
     impedance: ImpedanceParams = field(default_factory=lambda: ImpedanceParams(m=1.0, b=50.0, k_tau=0.015, k_v=0.0))
 
+    def feed_speed(self, depth: float, speed: float) -> float:
+        """`speed`, held to wedge_speed_mps while the peg is shallow enough to wedge (depth < mu x D)."""
+        return min(speed, self.wedge_speed_mps) if depth < self.wedge_friction * self.peg_diameter_m else speed
+
     def validate(self, where: str) -> None:
         if self.hole_xy is not None:
             require(len(self.hole_xy) == 2, f"{where}.hole_xy", f"must be (x, y), got {self.hole_xy}")
@@ -179,6 +188,7 @@ class PegConfig:
                      "min_probe_travel_m", "rotate_rate_dps", "rotate_max_force_n", "rotate_give_up_s",
                      "insert_speed_limit_mps", "free_insert_speed_mps", "centre_speed_mps", "entry_speed_mps",
                      "bore_orbit_press_m", "bore_orbit_speed_mps", "tight_insert_speed_mps", "bore_radius_tolerance_m",
+                     "wedge_friction", "wedge_speed_mps",
                      "bore_hold_fraction", "bore_orbit_deg",
                      "entry_depth_m",
                      "stall_s", "stall_depth_m", "max_lead_m", "touch_lead_m", "touch_force_n", "comply_deadband_nm",

@@ -369,3 +369,22 @@ def test_guarded_speed_bound_and_the_tasks_head_on_speeds(vs):
 def test_bad_guarded_settings_are_one_line_errors():
     with pytest.raises(ConfigError, match="guarded.impact_n_per_mps"):
         load_dataclass(CollisionConfig, {"guarded": {"impact_n_per_mps": 5}}, "collision")
+
+
+def test_the_pegs_head_on_speeds_and_its_feed_while_it_can_wedge(vs):
+    from app.tasks_registry import build_task, peg_head_on_speeds
+    from cell.guarded import GuardedSettings
+    from tasks.peg_config import PegConfig
+
+    cfg = vs["cfg"]
+    peg = PegConfig()
+    bound = cfg.collision.guarded.speed_bound(peg.max_force_n)
+    assert all(v <= bound for v in peg_head_on_speeds(peg).values())  # the defaults keep guarded motion
+    stiff = dataclasses.replace(cfg, collision=dataclasses.replace(
+        cfg.collision, guarded=GuardedSettings(impact_n_per_mps=20_000.0)))
+    with pytest.raises(ConfigError, match="tasks.peg.approach_speed_mps"):
+        build_task("peg-in-hole", stiff, vs["robot"])
+    # The free feed is held to the wedge speed while the peg is shallower than mu x D, then runs free.
+    wedge = peg.wedge_friction * peg.peg_diameter_m
+    assert peg.feed_speed(0.5 * wedge, peg.free_insert_speed_mps) == peg.wedge_speed_mps
+    assert peg.feed_speed(1.01 * wedge, peg.free_insert_speed_mps) == peg.free_insert_speed_mps
