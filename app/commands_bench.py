@@ -168,6 +168,17 @@ def _bench_tool_gravity(args: argparse.Namespace) -> dict[str, Any]:
                        seed=args.seed if args.seed is not None else 0)
 
 
+def _bench_peg_sim(args: argparse.Namespace) -> dict[str, Any]:
+    """The simulator at tight peg fits (bench/peg_sim.py): bore, contact give, wedging vs geometry, cost."""
+    from bench.peg_sim import measure, plot
+
+    data = measure()
+    out = Path("artifacts/bench")
+    out.mkdir(parents=True, exist_ok=True)
+    log.info("peg-sim figure: %s", plot(data, out / "peg-sim.png"))
+    return data
+
+
 BENCHES: dict[str, Bench] = {
     "sim": Bench(_bench_sim),
     "plant": Bench(_bench_plant),
@@ -181,6 +192,7 @@ BENCHES: dict[str, Bench] = {
     # Exit 1 when a compensated free-space force exceeds the target (0.5 N).
     "tool-gravity": Bench(_bench_tool_gravity, passed=lambda out: out["passed"]),
     # Exit 1 when a plan of ours (the hybrid model's TOPP-RA) exceeded a torque limit on the plant.
+    "peg-sim": Bench(_bench_peg_sim),
     "planning": Bench(bench_planning_cmd, passed=lambda out: out["torque_violations"]["model"] == 0,
                       tags=planning_tags),
 }

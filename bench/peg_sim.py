@@ -1,6 +1,7 @@
 """How far the simulator holds at tight peg fits: the collider's bore, contact yield, wedging vs geometry, cost.
 
-Run: `.venv/bin/python -m bench.peg_sim` -> artifacts/bench/peg-sim.json and artifacts/bench/peg-sim.png
+Run: `main.py bench peg-sim [--json]` (or `python -m bench.peg_sim`) -> artifacts/bench/peg-sim.json and
+artifacts/bench/peg-sim.png
 (docs/peg-tight-fits.md has the numbers)."""
 
 from __future__ import annotations
