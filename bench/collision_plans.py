@@ -4,6 +4,8 @@ collision-free poses, as one stream of joint targets."""
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from cell.config import CONFIG_DIR, CellConfig
@@ -15,6 +17,8 @@ from cell.robot import RobotModel
 from tasks.plan import load_plan_file
 
 REST_S = 0.25  # at rest between moves: each move starts from standstill, the hardest start
+log = logging.getLogger(__name__)
+
 TORQUE_SCALE = 0.8  # of the planning limit: the scale `plan` validates its first run at
 
 
@@ -41,10 +45,11 @@ def time_optimal_stream(robot: RobotModel, cfg: CellConfig, model: LearnedModel,
             break
         try:
             traj = planner.plan(np.vstack([a, b]), np.full(robot.n, TORQUE_SCALE))
-        except PlanningError:
-            continue  # an infeasible pair is skipped; the next starts where this one would have
-        if not np.allclose(traj.q[0], stream[-1][-1], atol=1e-6):
-            continue
+        except PlanningError as exc:
+            # The stream must stay continuous: the moves after this one start from b, so stop here (the
+            # caller counts the seconds actually played).
+            log.warning("time-optimal free motion: stopped at an infeasible move (%s)", exc)
+            break
         stream += [traj.q, np.repeat(b[None, :], rest, axis=0)]
         total += len(traj.q) + rest
     return np.vstack(stream)[: int(round(seconds / dt))]

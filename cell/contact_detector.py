@@ -92,8 +92,8 @@ def _beyond_coverage(coverage: Coverage | None, n: int) -> tuple[np.ndarray, np.
     lo, hi = coverage.lo[:, 1], coverage.lo[:, 1] + coverage.bins * coverage.width[:, 1]
     v_max[js] = np.maximum(np.abs(lo), np.abs(hi))
     finite = np.where(np.isfinite(v_max), v_max, 0.0)
-    edge = coverage.sigma(finite[None, :], np.zeros((1, n)))[0] if coverage.blend else \
-        dataclasses.replace(coverage, blend=True).sigma(finite[None, :], np.zeros((1, n)))[0]
+    # Trust 0 with blending: the physics part's level in that speed bin.
+    edge = dataclasses.replace(coverage, blend=True).sigma(finite[None, :], np.zeros((1, n)))[0]
     return v_max, edge
 
 

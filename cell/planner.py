@@ -211,6 +211,14 @@ class _Base:
     def sample(self, name: str, ts: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> TimedTrajectory:
         return TimedTrajectory(planner=name, t=ts, q=q, dq=dq, ddq=ddq)
 
+    @staticmethod
+    def stamp(traj: TimedTrajectory, t0: float, iterations: int, scale: np.ndarray) -> TimedTrajectory:
+        """The accepted plan with how it was made: wall time since `t0`, iterations, the bound scale."""
+        traj.plan_time_s = time.perf_counter() - t0
+        traj.iterations = iterations
+        traj.torque_scale = scale
+        return traj
+
     def excess(self, traj: TimedTrajectory, scale: np.ndarray | None = None) -> np.ndarray:
         """Per joint: peak |predicted torque| / planning limit (<= 1 means it fits)."""
         tau = self.torque_fn(traj.q, traj.dq, traj.ddq)
@@ -242,10 +250,7 @@ class ToppraPlanner(_Base):
             traj = self.timed(path, grid, np.maximum(np.asarray(sd, float), 0.0))
             ratio = self.excess(traj, scale)
             if np.all(ratio <= 1.0 + 1e-3):
-                traj.plan_time_s = time.perf_counter() - t0
-                traj.iterations = it
-                traj.torque_scale = scale
-                return traj
+                return self.stamp(traj, t0, it, scale)
             # Lower the rigid-body bound of each violating joint by its excess and try again.
             bound = np.where(ratio > 1.0, bound / ratio * 0.995, bound)
         raise PlanningError(

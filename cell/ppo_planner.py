@@ -73,10 +73,7 @@ class PpoPlanner(ToppraPlanner):
             traj = self.timed(path, grid, sd)
             ratio = self.excess(traj, scale)
             if np.all(ratio <= 1.0 + 1e-3):
-                traj.plan_time_s = time.perf_counter() - t0
-                traj.iterations = it
-                traj.torque_scale = scale
-                return traj
+                return self.stamp(traj, t0, it, scale)
             sd = sd * SLOWDOWN_STEP
         raise PlanningError(f"ppo: the policy's profile still exceeds a torque limit after slowing it to "
                             f"{SLOWDOWN_STEP ** MAX_SLOWDOWNS:.2f} x (worst ratio {float(np.max(ratio)):.3f})")
