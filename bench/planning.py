@@ -106,7 +106,9 @@ def model_trust(s: PlanningSetup) -> dict[str, Any]:
     limit = 1.0 - s.pcfg.torque_margin
     planner = ToppraPlanner(s.robot, s.torque_fn, s.pcfg, s.collisions, s.terms)
     key = {"arm": s.arm_identity, "model": s.model_name, "limit_fraction": limit,
-           "velocity_fraction": s.pcfg.velocity_fraction, "smoothing_s": s.pcfg.smoothing_s}
+           "velocity_fraction": s.pcfg.velocity_fraction, "smoothing_s": s.pcfg.smoothing_s,
+           "torque_discretization": s.pcfg.torque_discretization, "start_margin": s.pcfg.start_margin,
+           "start_margin_s": s.pcfg.start_margin_s}
     return load_or_calibrate(s.artefacts / "model_trust.json", key,
                              lambda: calibrate_trust(planner, reference_set(s), s.calibration_run, limit))
 

@@ -9,7 +9,9 @@ cumulative joint-space chord length), so their times compare like for like:
   rotor inertia and Coulomb friction (`ToppraTerms`) is the toppra constraint, and the rest of the
   model is handled by iteration: the full model is evaluated on the
   timed trajectory and any joint that exceeds its limit gets its toppra bound lowered by the excess,
-  until the full model's torques fit.
+  until the full model's torques fit.  The bound holds at both ends of every grid segment
+  (`torque_discretization`) and is lowered by `start_margin` while the arm leaves rest, where the
+  plant's servo overshoots the model (docs/planning.md, "Start transients").
 - `UniformScalingPlanner`: the operator's pendant speed knob: a fixed trapezoidal profile in the path
   parameter, uniformly stretched to the shortest duration whose predicted torques fit (bisection).
 
@@ -28,6 +30,7 @@ import numpy as np
 import toppra as ta
 import toppra.algorithm as ta_algo
 import toppra.constraint as ta_con
+from toppra.constraint.linear_constraint import canlinear_colloc_to_interpolate
 
 from cell.collision import CollisionChecker
 from cell.configio import require
@@ -36,6 +39,8 @@ from drivers.errors import CellError
 
 log = logging.getLogger(__name__)
 ta.setup_logging("WARNING")
+DISCRETIZATIONS = {"interpolation": ta_con.DiscretizationType.Interpolation,
+                   "collocation": ta_con.DiscretizationType.Collocation}
 
 TorqueFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (N,n) x3 -> (N,n)
 InvDyn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (n,) x3 -> (n,), second order in the path speed
@@ -69,6 +74,26 @@ def toppra_terms(model: object) -> ToppraTerms | None:
     return ToppraTerms(inv_dyn, np.asarray(p2.params.f_c, float))
 
 
+class GradedTorqueConstraint(ta_con.JointTorqueConstraint):
+    """toppra's joint torque constraint with the bound scaled by `factor` (one per grid point): the torque
+    coefficients a, b, c of each grid point are divided by its factor, which keeps F and g the same at every
+    grid point (so toppra's solvers take it as they take the plain constraint)."""
+
+    def __init__(self, inv_dyn: InvDyn, tau_lim: np.ndarray, coulomb: np.ndarray, factor: np.ndarray,
+                 discretization: str) -> None:
+        super().__init__(inv_dyn, tau_lim, coulomb, discretization_scheme=DISCRETIZATIONS["collocation"])
+        self.factor = np.asarray(factor, float)
+        self.interpolate = discretization == "interpolation"
+
+    def compute_constraint_params(self, path: object, gridpoints: np.ndarray) -> tuple[object, ...]:
+        a, b, c, F, g, _, _ = super().compute_constraint_params(path, gridpoints)
+        f = self.factor[:, None]
+        a, b, c = a / f, b / f, c / f
+        if self.interpolate:
+            return tuple(canlinear_colloc_to_interpolate(a, b, c, F, g, None, None, gridpoints, identical=True))
+        return a, b, c, F, g, None, None
+
+
 class PlanningError(CellError):
     """The waypoints cannot be planned (outside limits, colliding, or infeasible)."""
 
@@ -90,6 +115,17 @@ class PlannerConfig:
     # parameter s(t) is averaged over this window (0: off), which bounds the jerk and adds about the
     # window to the duration.
     smoothing_s: float = 0.04
+    # Where toppra checks the torque constraint: "interpolation" at both ends of every grid segment,
+    # "collocation" (toppra's default) only at its start.  The clamped spline has dp/ds = 0 at s = 0, so a
+    # check at the start alone leaves the first segment's acceleration free: the profile shot up and stalled
+    # within 20 ms, and 7 of 69 first runs (bench planning, seeds 1-3) overshot a motor there (docs/planning.md).
+    torque_discretization: str = "interpolation"
+    # The plant's torque overshoots the model's as the arm leaves rest (servo lag, friction breaking away,
+    # the controller's cubic interpolation of the set-points): the highest first-run peaks were all 64-88 ms
+    # into the motion.  The rigid-body bound is lowered by this share over the first `start_margin_s` of the
+    # motion (back to the full bound over the next half window); it costs 0-16 ms a path (docs/planning.md).
+    start_margin: float = 0.15
+    start_margin_s: float = 0.10
 
     def validate(self, where: str) -> None:
         require(0 <= self.torque_margin < 0.9, f"{where}.torque_margin", "must lie in [0, 0.9)")
@@ -99,6 +135,10 @@ class PlannerConfig:
         require(20 <= self.gridpoints <= 2000, f"{where}.gridpoints", "must lie in [20, 2000]")
         require(0 < self.baseline_blend <= 0.5, f"{where}.baseline_blend", "must lie in (0, 0.5]")
         require(0 <= self.smoothing_s <= 0.5, f"{where}.smoothing_s", "must lie in [0, 0.5] s")
+        require(self.torque_discretization in DISCRETIZATIONS, f"{where}.torque_discretization",
+                f"must be one of {', '.join(DISCRETIZATIONS)}")
+        require(0 <= self.start_margin <= 0.5, f"{where}.start_margin", "must lie in [0, 0.5]")
+        require(0 <= self.start_margin_s <= 1.0, f"{where}.start_margin_s", "must lie in [0, 1] s")
 
 
 @dataclass
@@ -233,21 +273,10 @@ class ToppraPlanner(_Base):
         path = self.check_waypoints(waypoints)
         n = self.robot.n
         scale = np.ones(n) if torque_scale is None else np.array(torque_scale, float)
-        vel = ta_con.JointVelocityConstraint(np.column_stack([-self.vlim, self.vlim]))
-        acc = ta_con.JointAccelerationConstraint(np.column_stack([-self.alim, self.alim]))
-
-        friction = np.zeros(n) if self.terms.coulomb is None else self.terms.coulomb
         grid = np.linspace(0, 1, self.cfg.gridpoints + 1)
         bound = scale.copy()  # the toppra constraint's share of the limit, lowered while the full model exceeds
         for it in range(1, self.cfg.max_iterations + 1):
-            lim = self.torque_limit(bound)
-            torque = ta_con.JointTorqueConstraint(self.terms.inv_dyn, np.column_stack([-lim, lim]), friction)
-            algo = ta_algo.TOPPRA([vel, acc, torque], path.spline, gridpoints=grid,
-                                  parametrizer="ParametrizeConstAccel")
-            _, sd, _ = algo.compute_parameterization(0.0, 0.0)
-            if sd is None or not np.all(np.isfinite(sd)):
-                raise PlanningError("no feasible timing: the torque limits cannot hold the arm on this path")
-            traj = self.timed(path, grid, np.maximum(np.asarray(sd, float), 0.0))
+            traj = self.timed(path, grid, self.speed_profile(path, grid, self.torque_limit(bound)))
             ratio = self.excess(traj, scale)
             if np.all(ratio <= 1.0 + 1e-3):
                 return self.stamp(traj, t0, it, scale)
@@ -257,6 +286,44 @@ class ToppraPlanner(_Base):
             f"the full model's torques still exceed the limits after {self.cfg.max_iterations} re-plans "
             f"(worst ratio {float(np.max(ratio)):.3f})"
         )
+
+    def speed_profile(self, path: GeometricPath, grid: np.ndarray, limit: np.ndarray) -> np.ndarray:
+        """toppra's fastest path speed sd at the grid points (from rest to rest) under the joint speed and
+        acceleration limits and the rigid-body torque bound +-`limit` (N·m per joint), lowered by
+        `start_margin` over the motion's first `start_margin_s`.  Where that window ends along the path is
+        taken from the profile without the margin (the margin only makes the start slower, so the window in
+        time is at least as long as configured)."""
+        sd = self._toppra(path, grid, limit, np.ones(len(grid)))
+        if self.cfg.start_margin <= 0 or self.cfg.start_margin_s <= 0:
+            return sd
+        try:
+            return self._toppra(path, grid, limit, self.start_factor(grid, sd))
+        except PlanningError:
+            # Holding the start pose alone takes more than (1 - start_margin) of the bound: plan without it.
+            log.warning("planner: the start margin leaves no feasible timing here; planned without it")
+            return sd
+
+    def start_factor(self, grid: np.ndarray, sd: np.ndarray) -> np.ndarray:
+        """Per grid point, the share of the torque bound toppra may use: 1 - start_margin until
+        start_margin_s into the profile sd, rising linearly to 1 over the next half window."""
+        ds = np.diff(grid)
+        t = np.concatenate([[0.0], np.cumsum(2.0 * ds / np.maximum(sd[:-1] + sd[1:], 1e-9))])
+        window = self.cfg.start_margin_s
+        rise = np.clip((t - window) / (0.5 * window), 0.0, 1.0)
+        return 1.0 - self.cfg.start_margin * (1.0 - rise)
+
+    def _toppra(self, path: GeometricPath, grid: np.ndarray, limit: np.ndarray, factor: np.ndarray) -> np.ndarray:
+        n = self.robot.n
+        vel = ta_con.JointVelocityConstraint(np.column_stack([-self.vlim, self.vlim]))
+        acc = ta_con.JointAccelerationConstraint(np.column_stack([-self.alim, self.alim]))
+        friction = np.zeros(n) if self.terms.coulomb is None else self.terms.coulomb
+        torque = GradedTorqueConstraint(self.terms.inv_dyn, np.column_stack([-limit, limit]), friction, factor,
+                                        self.cfg.torque_discretization)
+        algo = ta_algo.TOPPRA([vel, acc, torque], path.spline, gridpoints=grid, parametrizer="ParametrizeConstAccel")
+        _, sd, _ = algo.compute_parameterization(0.0, 0.0)
+        if sd is None or not np.all(np.isfinite(sd)):
+            raise PlanningError("no feasible timing: the torque limits cannot hold the arm on this path")
+        return np.maximum(np.asarray(sd, float), 0.0)
 
     def timed(self, path: GeometricPath, grid: np.ndarray, sd: np.ndarray) -> TimedTrajectory:
         """Sample the path speed profile sd(s) (constant path acceleration between grid points) every

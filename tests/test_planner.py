@@ -1,12 +1,15 @@
-"""The planners: refused inputs, respected limits, and a torque-bound path slowed rather than violated."""
+"""The planners: refused inputs, respected limits, a torque-bound path slowed rather than violated, a clean start."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from cell.collision import CollisionChecker
-from cell.planner import PlannerConfig, PlanningError, ToppraPlanner, UniformScalingPlanner
+from cell.planner import GeometricPath, PlannerConfig, PlanningError, ToppraPlanner, ToppraTerms, UniformScalingPlanner
+from drivers.errors import ConfigError
 
 PATH = np.radians([[0, -30, 90, 0, 90, 0], [60, 10, 60, -30, 90, 30], [120, 30, 30, 0, 90, 0]])
 
@@ -67,20 +70,89 @@ def test_time_optimal_is_faster_than_the_uniform_baseline(robot, p1, pcfg):
     assert opt.plan_time_s < 1.0
 
 
-def test_a_path_at_the_torque_limit_is_slowed_not_violated(robot, p1, pcfg):
+@pytest.mark.parametrize("start_margin", [0.0, None])
+def test_a_path_at_the_torque_limit_is_slowed_not_violated(robot, p1, pcfg, start_margin):
     """A model with twice the nominal inertial torque plus friction (a heavy payload, sticky joints):
-    the rigid-body bound toppra sees is not enough, so it must iterate until the full model fits."""
+    the rigid-body bound toppra sees is not enough, so it must iterate until the full model fits.
+    Without the start margin the heavy plan is 5.2 % longer; with it (the default) 4.1 %: the start, where
+    the heavy model exceeded most, is tightened there only, so the iteration lowers the whole path's bound less."""
 
     def heavy(q, dq, ddq):
         rigid = p1(q, dq, ddq)
         gravity = p1(q, np.zeros_like(dq), np.zeros_like(ddq))
         return gravity + 2.0 * (rigid - gravity) + 8.0 * np.tanh(dq / 0.05)
 
-    light = ToppraPlanner(robot, p1, pcfg).plan(PATH)
-    planner = ToppraPlanner(robot, heavy, pcfg)
+    cfg = pcfg if start_margin is None else replace(pcfg, start_margin=start_margin)
+    light = ToppraPlanner(robot, p1, cfg).plan(PATH)
+    planner = ToppraPlanner(robot, heavy, cfg)
     traj = planner.plan(PATH)
     assert traj.iterations > 1
     assert np.all(planner.excess(traj) <= 1.0 + 2e-3)
-    assert traj.duration > light.duration * 1.05
+    assert traj.duration > light.duration * (1.05 if start_margin == 0.0 else 1.035)
     # and the nominal plan would have violated the heavy model's limits
     assert np.max(planner.excess(light)) > 1.0
+
+
+# A random path (seed 0 of cell.speed_env.random_waypoints) on which toppra's default discretisation stalls.
+FROM_REST = np.radians([[-48.1, -11.2, 33.1, -67.6, 90.4, 26.5], [27.7, -14.3, 139.7, 86.6, 91.7, 27.1],
+                        [45.2, -13.9, 44.9, 39.9, 77.3, -34.2]])
+
+
+def torque_ratios(planner: ToppraPlanner, path: GeometricPath, grid: np.ndarray, sd: np.ndarray,
+                  limit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per grid point: the profile's time there, and the largest |rigid-body torque| / limit of the
+    constant-acceleration segments on either side of it."""
+    x = sd**2
+    u = np.diff(x) / (2.0 * np.diff(grid))
+    t = np.concatenate([[0.0], np.cumsum(2.0 * np.diff(grid) / np.maximum(sd[:-1] + sd[1:], 1e-9))])
+    p, dp, ddp = path.eval(grid)
+    coulomb = np.zeros(len(limit)) if planner.terms.coulomb is None else planner.terms.coulomb
+    ratio = np.zeros(len(grid))
+    for i, a in enumerate(u):
+        for k in (i, i + 1):
+            tau = planner.terms.inv_dyn(p[k], dp[k] * sd[k], ddp[k] * x[k] + dp[k] * a) + coulomb * np.sign(dp[k])
+            ratio[k] = max(ratio[k], float(np.max(np.abs(tau) / limit)))
+    return t, ratio
+
+
+def from_rest(robot, p1, pcfg, **settings):
+    """FROM_REST's planner (rigid body + Coulomb friction as toppra's constraint), path, grid and bound."""
+    terms = ToppraTerms(robot.rnea, np.array([5.5, 5.5, 4.0, 1.5, 1.5, 1.2]))
+    planner = ToppraPlanner(robot, p1, replace(pcfg, velocity_fraction=0.75, **settings), None, terms)
+    return planner, planner.check_waypoints(FROM_REST), np.linspace(0.0, 1.0, pcfg.gridpoints + 1), \
+        planner.torque_limit(np.full(6, 0.7))
+
+
+@pytest.mark.parametrize("discretization", ["interpolation", "collocation"])
+def test_the_torque_bound_holds_across_each_segment_so_the_plan_leaves_rest_without_a_stall(robot, p1, pcfg,
+                                                                                             discretization):
+    """The clamped spline has dp/ds = 0 at s = 0: checked at each segment's start only (toppra's default), the
+    first segment's acceleration is free, the rigid-body torque at its end is several times the bound and the
+    path speed stalls to recover from it (the plant's servo overshot there: docs/planning.md).  Checked at
+    both ends (the default), the bound holds everywhere and the speed rises from rest."""
+    planner, path, grid, limit = from_rest(robot, p1, pcfg, torque_discretization=discretization, start_margin=0.0)
+    sd = planner.speed_profile(path, grid, limit)
+    ratio = float(np.max(torque_ratios(planner, path, grid, sd, limit)[1]))
+    if discretization == "interpolation":
+        assert ratio <= 1.0 + 1e-3
+        assert np.all(np.diff(sd[:10]) > 0)  # speeding up from rest, no stall
+    else:  # the artefact the default avoids, so that this test would notice a return to it
+        assert ratio > 2.0
+        assert sd[2] < 0.5 * sd[1]
+
+
+def test_a_bad_torque_discretization_is_refused():
+    with pytest.raises(ConfigError, match=r"plans.yaml planner.torque_discretization must be one of interpolation"):
+        PlannerConfig(torque_discretization="midpoint").validate("plans.yaml planner")
+
+
+@pytest.mark.parametrize("margin", [0.15, 0.0])
+def test_leaving_rest_the_plan_keeps_the_start_margin_then_uses_the_whole_bound(robot, p1, pcfg, margin):
+    """The plant's torque overshoots the model's as the arm leaves rest: over the first start_margin_s the
+    profile plans to (1 - start_margin) of the bound, after that to all of it (this path is torque-bound at
+    its start: without the margin the start reaches the bound)."""
+    planner, path, grid, limit = from_rest(robot, p1, pcfg, start_margin=margin, start_margin_s=0.1)
+    t, ratio = torque_ratios(planner, path, grid, planner.speed_profile(path, grid, limit), limit)
+    assert np.max(ratio[t <= 0.1]) == pytest.approx(1.0 - margin, abs=2e-3)
+    assert np.max(ratio[t > 0.15]) == pytest.approx(1.0, abs=2e-3)
+    assert np.max(ratio) <= 1.0 + 1e-3
