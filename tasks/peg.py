@@ -132,10 +132,8 @@ class PegInHoleTask(MachineTask, PegTriggers):
         self.contact = contact
         if self.state not in (S.MOVE_TO_START, S.TARE, S.DONE, S.FAILED):
             self._check_limits(fz, mx, my)
-        rebias = False
-        if not self.done:
-            handler = getattr(self, f"_{self.state.value}")
-            rebias = bool(handler(obs, fz, mx, my))
+        handler = None if self.done else getattr(self, f"_{self.state.value}")
+        rebias = bool(handler(obs, fz, mx, my)) if handler is not None else False
         q = obs.q_cmd if self.done else self._command(obs)
         self.t_state += self.dt
         return Command(
@@ -366,7 +364,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
             # builds (the hole's axis is not the peg's: a wedge ahead is far stiffer than the servo is fast).
             # Slowly near the mouth, and after a stall (a wedge ahead) unless the fit is tight (bore re-measured).
             slow = self.depth <= c.entry_depth_m or (self.realigns > 0 and self.rc > c.bore_centring_below_m)
-            fast = c.free_insert_speed_mps if self.rc > c.bore_centring_below_m else c.tight_insert_speed_mps
+            fast = c.free_insert_speed_mps if self.rc > c.bore_centring_below_m else c.tight_feed_speed(self.rc)
             v = min(c.entry_speed_mps, fast) if slow else c.feed_speed(self.depth, fast)
             side = max(0.0, m - c.comply_deadband_nm) / (c.side_moment_nm - c.comply_deadband_nm)
             self.ref.translation += axis * v * max(0.0, 1.0 - side) * self.dt
@@ -383,7 +381,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
             # reflex: a wedge ahead; stop pushing into it before the law catches up
             relieve(self.ref, self._tip, self.law)
         comply(self.ref, mx, my, self.cfg, self.dt)
-        self.bore.hold(self.ref)
+        self.bore.hold(self.ref, self._tip)
         self._depth_hist.append(self.depth)
         n = int(round(c.stall_s / self.dt))
         if len(self._depth_hist) > n and self._depth_hist[-1] - self._depth_hist[-1 - n] < c.stall_depth_m:
@@ -404,7 +402,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
         if self.t_state < c.realign_time_s / 2:
             self.ref.translation -= self.ref.rotation[:, 2] * 2 * c.realign_lift_m * self.dt / c.realign_time_s
         comply(self.ref, mx, my, self.cfg, self.dt, scale=2.0)
-        self.bore.hold(self.ref)
+        self.bore.hold(self.ref, self._tip)
         if self.t_state >= c.realign_time_s:
             self.law.reset()
             self._depth_hist = []
@@ -432,11 +430,11 @@ class PegInHoleTask(MachineTask, PegTriggers):
             self.fail_because(f"peg stuck while retracting (pull {-fz:.1f} N for {self._pull_t:.2f} s)")
             return False
         # Out along the peg's own axis, which the insertion has aligned with the hole's.
-        # Slowly while the peg is in the hole (a stiff contact at the mouth turns speed into force spikes).
-        v = self.cfg.retract_speed_mps if self.depth < -0.002 else self.cfg.retract_slow_speed_mps
+        v = self.cfg.retract_speed(self.depth, self.rc)  # slowly while in the hole or near it
         self.ref.translation -= self.ref.rotation[:, 2] * v * self.dt
         if self.depth > 0:
             comply(self.ref, mx, my, self.cfg, self.dt)  # still in the hole: follow its axis rather than pull on a wall
+            self.bore.hold(self.ref, self._tip)
         if self.depth <= -self.cfg.retract_height_m:
             self.retracted()
         return False

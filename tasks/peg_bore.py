@@ -10,6 +10,7 @@ import numpy as np
 import pinocchio as pin
 
 from tasks.peg_config import PegConfig
+from tasks.peg_twist import Twist
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +63,7 @@ class BoreCentring:
         self._radius = 0.0
         self._path: list[np.ndarray] = []
         self._target: np.ndarray | None = None  # after the orbit: where the reference goes (the fitted centre)
+        self.twist = Twist(cfg, dt)
 
     def begin(self, ref: pin.SE3, tip: pin.SE3) -> None:
         """Start (again) from the measured tip: the reference drops any wound-up push and lateral lead."""
@@ -110,13 +112,22 @@ class BoreCentring:
         self._target = self.centre if self.centre is not None else self._c0.copy()
         return "centring"
 
-    def hold(self, ref: pin.SE3) -> None:
-        """Keep the reference's compliant lateral shift within `bore_hold_fraction` of the radial clearance of the
-        measured centre: beyond it the peg's side can only press into the wall."""
-        if self.centre is None or self.active:
+    def hold(self, ref: pin.SE3, tip: pin.SE3) -> None:
+        """At tight fits, between orbits: keep the reference's compliant lateral shift within `bore_hold_fraction` of
+        the radial clearance of the measured centre (beyond it the peg's side can only press into the wall), keep it
+        within `bore_tether_fraction` of the clearance of the measured tip (the peg cannot follow it further; this
+        holds when the orbit found no bore, or the peg was measured elsewhere since), and twist the peg."""
+        if self.rc > self.cfg.bore_centring_below_m or self.active:
             return
-        off = ref.translation[:2] - self.centre
-        r = float(np.linalg.norm(off))
-        limit = self.cfg.bore_hold_fraction * self.rc
-        if r > limit:
-            ref.translation[:2] = self.centre + off * (limit / r)
+        if self.centre is not None:
+            off = ref.translation[:2] - self.centre
+            r = float(np.linalg.norm(off))
+            limit = self.cfg.bore_hold_fraction * self.rc
+            if r > limit:
+                ref.translation[:2] = self.centre + off * (limit / r)
+        lead = ref.translation[:2] - tip.translation[:2]
+        d = float(np.linalg.norm(lead))
+        tether = self.cfg.bore_tether_fraction * self.rc
+        if d > tether:
+            ref.translation[:2] = tip.translation[:2] + lead * (tether / d)
+        self.twist.step(ref)

@@ -116,7 +116,22 @@ class PegConfig:
     # The free feed at tight fits: a peg that meets a wedge at the feed's speed stops within the servo's reaction
     # (~20 ms), so the peak force grows with the speed (225 N at 16 mm/s, a wedge 2.5 mm in at the 0.1 mm fit).
     tight_insert_speed_mps: float = 0.006
+    # ... and at most this many radial clearances per second: the tighter the fit, the harder the stick-slip at the
+    # wall (single 100-170 N samples at 0.05 mm): at 0.05 mm 4 mm/s, 3 of 15 trials stopped at 150 N at 6 mm/s, 0 at 4.
+    tight_feed_per_clearance_hz: float = 160.0
+    # The retract while the peg is in a tight bore (retract_slow_speed_mps otherwise): at 0.05 mm and 6 mm/s, 5 of 15
+    # trials were stopped at 150 N on the way out, at 3 mm/s 0-1 (what it costs is not insertion time).
+    tight_retract_speed_mps: float = 0.003
     bore_hold_fraction: float = 0.5  # the compliant lateral shift kept within this share of the radial clearance
+    # ... and the reference kept within this share of the radial clearance of the measured tip, laterally: the peg
+    # cannot go further, so a reference beyond it only presses the wall, and the servo's integral turns that
+    # lead into tens of newtons (compliance on the virtual moments led the tip by 0.1-0.6 mm at 0.1 mm: 100-130 N)
+    bore_tether_fraction: float = 1.0
+    # Twist at tight fits (tasks/peg_twist.py): the peg turns to and fro about its own axis while it is fed, realigned
+    # and retracted, so its sliding at the wall is mostly round the bore and the wall's friction mostly opposes that,
+    # not the feed (screw insertion); 0: no twist.
+    twist_amplitude_deg: float = 10.0
+    twist_frequency_hz: float = 0.5
     target_depth_m: float = 0.027  # success: the tip (face centre) this far below the mouth
     stall_s: float = 0.6  # depth gained less than stall_depth_m over this window: stuck
     stall_depth_m: float = 0.0003
@@ -158,6 +173,18 @@ class PegConfig:
         """`speed`, held to wedge_speed_mps while the peg is shallow enough to wedge (depth < mu x D)."""
         return min(speed, self.wedge_speed_mps) if depth < self.wedge_friction * self.peg_diameter_m else speed
 
+    def tight_feed_speed(self, radial_clearance: float) -> float:
+        """The free feed's speed at a tight fit: tight_insert_speed_mps, slower still as the clearance shrinks."""
+        return min(self.tight_insert_speed_mps, self.tight_feed_per_clearance_hz * radial_clearance)
+
+    def retract_speed(self, depth: float, radial_clearance: float) -> float:
+        """The retract's speed: slowly while the peg is in the hole or just above it (a stiff contact at the mouth
+        turns speed into force spikes), at tight fits at tight_retract_speed_mps."""
+        if depth < -0.002:
+            return self.retract_speed_mps
+        return self.tight_retract_speed_mps if radial_clearance <= self.bore_centring_below_m else \
+            self.retract_slow_speed_mps
+
     def validate(self, where: str) -> None:
         if self.hole_xy is not None:
             require(len(self.hole_xy) == 2, f"{where}.hole_xy", f"must be (x, y), got {self.hole_xy}")
@@ -189,7 +216,8 @@ class PegConfig:
                      "insert_speed_limit_mps", "free_insert_speed_mps", "centre_speed_mps", "entry_speed_mps",
                      "bore_orbit_press_m", "bore_orbit_speed_mps", "tight_insert_speed_mps", "bore_radius_tolerance_m",
                      "wedge_friction", "wedge_speed_mps",
-                     "bore_hold_fraction", "bore_orbit_deg",
+                     "bore_hold_fraction", "bore_orbit_deg", "bore_tether_fraction", "twist_frequency_hz",
+                     "tight_retract_speed_mps", "tight_feed_per_clearance_hz",
                      "entry_depth_m",
                      "stall_s", "stall_depth_m", "max_lead_m", "touch_lead_m", "touch_force_n", "comply_deadband_nm",
                      "realign_time_s", "realign_force_n", "realign_lift_m", "shift_gain",
@@ -197,6 +225,7 @@ class PegConfig:
                      "max_pull_n", "max_pull_s",
                      "move_speed_fraction", "tare_time_s", "max_duration_s"):
             require(getattr(self, name) > 0, f"{where}.{name}", f"must be > 0, got {getattr(self, name)}")
+        require(self.twist_amplitude_deg >= 0, f"{where}.twist_amplitude_deg", "must be >= 0")
         require(self.move_speed_fraction <= 1, f"{where}.move_speed_fraction", "must be <= 1")
         require(self.hole_diameter_m > self.peg_diameter_m, f"{where}.hole_diameter_m",
                 f"must exceed peg_diameter_m ({self.peg_diameter_m})")

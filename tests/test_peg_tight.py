@@ -72,7 +72,7 @@ def test_the_hold_keeps_the_compliant_shift_within_the_clearance():
     bore = BoreCentring(cfg, DT, RC)
     bore.centre = np.array([0.45, -0.12])
     ref = _pose(np.array([0.45 + 0.001, -0.12]))  # a millimetre off: only presses the wall
-    bore.hold(ref)
+    bore.hold(ref, ref)
     assert np.linalg.norm(ref.translation[:2] - bore.centre) == pytest.approx(cfg.bore_hold_fraction * RC)
 
 
@@ -81,3 +81,54 @@ def test_the_paper_geometry_does_not_engage_the_tight_fit_centring(cfg):
     assert (pcfg.hole_diameter_m - pcfg.peg_diameter_m) / 2 > pcfg.bore_centring_below_m
     for peg in (0.0217, 0.02175):
         assert (pcfg.hole_diameter_m - peg) / 2 <= pcfg.bore_centring_below_m
+
+
+def test_the_tether_keeps_the_reference_within_the_clearance_of_the_tip():
+    # No bore measured (the orbit's fit was rejected): compliance may still not lead the blocked tip by a millimetre.
+    cfg = PegConfig(peg_diameter_m=0.0217)
+    bore = BoreCentring(cfg, DT, RC)
+    tip = _pose(np.array([0.45, -0.12]))
+    ref = _pose(np.array([0.45 + 0.0006, -0.12 + 0.0002]))
+    bore.hold(ref, tip)
+    lead = ref.translation[:2] - tip.translation[:2]
+    assert np.linalg.norm(lead) == pytest.approx(cfg.bore_tether_fraction * RC)
+    assert lead[1] / lead[0] == pytest.approx(1 / 3)  # drawn straight back toward the tip
+    near = _pose(np.array([0.45 + 0.2 * RC, -0.12]))
+    bore.hold(near, tip)
+    assert near.translation[0] == pytest.approx(0.45 + 0.2 * RC)  # within the clearance: left alone
+
+
+def test_the_twist_turns_the_peg_about_its_own_axis_only():
+    cfg = PegConfig(peg_diameter_m=0.0217, twist_amplitude_deg=5.0, twist_frequency_hz=2.0)
+    bore = BoreCentring(cfg, DT, RC)
+    tilted = pin.SE3(pin.exp3(np.array([0.01, -0.02, 0.3])), np.array([0.45, -0.12, 0.05]))
+    ref = tilted.copy()
+    angles = []
+    for _ in range(int(round(1 / (cfg.twist_frequency_hz * DT)))):  # one period
+        bore.hold(ref, ref)
+        rel = tilted.rotation.T @ ref.rotation
+        angles.append(math.degrees(math.atan2(rel[1, 0], rel[0, 0])))
+        assert np.allclose(ref.rotation[:, 2], tilted.rotation[:, 2], atol=1e-12)  # the peg's axis stays
+        assert np.allclose(ref.translation, tilted.translation)
+    assert max(angles) == pytest.approx(5.0, abs=0.1) and min(angles) == pytest.approx(-5.0, abs=0.1)
+    assert abs(angles[-1]) < 0.5  # back where it began after a period
+
+
+def test_the_paper_geometry_is_neither_held_nor_twisted():
+    cfg = PegConfig(peg_diameter_m=0.0214, twist_amplitude_deg=5.0)
+    rc = (cfg.hole_diameter_m - cfg.peg_diameter_m) / 2
+    bore = BoreCentring(cfg, DT, rc)
+    bore.centre = np.array([0.45, -0.12])
+    tip = _pose(np.array([0.45, -0.12]))
+    ref = pin.SE3(np.eye(3), np.array([0.451, -0.12, 0.05]))
+    for _ in range(10):
+        bore.hold(ref, tip)
+    assert np.allclose(ref.rotation, np.eye(3)) and ref.translation[0] == pytest.approx(0.451)
+
+
+def test_the_retract_is_slower_only_in_a_tight_bore():
+    cfg = PegConfig(peg_diameter_m=0.0217, tight_retract_speed_mps=0.003)
+    paper = (cfg.hole_diameter_m - 0.0214) / 2
+    assert cfg.retract_speed(0.01, paper) == cfg.retract_slow_speed_mps  # the paper's path is unchanged
+    assert cfg.retract_speed(0.01, RC) == 0.003
+    assert cfg.retract_speed(-0.005, RC) == cfg.retract_speed(-0.005, paper) == cfg.retract_speed_mps
