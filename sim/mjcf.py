@@ -25,6 +25,10 @@ HOLE_WALL_SEGMENTS = 32
 FIT_SOLREF = "0.002 1"
 FIT_SOLIMP = "0.95 0.99 0.0005"
 PAD_MASS = 1.0  # kg: a spring-loaded wiping head; a lighter one chatters against the rigid table at 1 ms
+# The convex collider's tolerance [m].  Contacts here penetrate 0.1-10 um, so MuJoCo's default (1e-6) is
+# as large as the penetration itself: it reversed contact normals in ~5 % of the peg bench's physics steps
+# (the peg pulled into the wall it touches: 87 N spikes, jams at the 0.05 mm fit).  See config/plants/README.md.
+CCD_TOLERANCE = 1e-9
 HOLE_WALL_THICKNESS = 0.012  # m, radial; wide enough to land a peg that is off by a few mm
 
 
@@ -215,7 +219,8 @@ def build_mjcf(
     xml = (
         '<mujoco model="tm5-700-plant">'
         '<compiler angle="radian" autolimits="true"/>'
-        f'<option timestep="{physics_dt:.6g}" integrator="implicitfast" cone="elliptic" impratio="5">'
+        f'<option timestep="{physics_dt:.6g}" integrator="implicitfast" cone="elliptic" impratio="5"'
+        f' ccd_tolerance="{CCD_TOLERANCE:.3g}">'
         '<flag multiccd="enable"/></option>'
         '<size memory="20M"/>'
         '<worldbody><geom name="floor" type="plane" size="2 2 0.1" rgba=".9 .9 .9 1" contype="0" conaffinity="0"/>'

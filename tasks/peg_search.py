@@ -128,6 +128,7 @@ class WallSearch:
             done = self.slid >= dist - 1e-9 and self.phase_time > 0.1
         elif self.slid > max(fast, c.min_probe_travel_m) and (
                 (moved > c.min_probe_travel_m and lag > c.slide_block_m)
+                or tip.translation[2] - ref.translation[2] > c.slide_climb_m
                 or (moved > c.min_probe_travel_m and self.stalled >= 1)
                 or (self.phase_clear and np.isfinite(m) and m > c.block_moment_nm)):
             done = True
@@ -138,8 +139,8 @@ class WallSearch:
         if not done:
             self.phase_time += self.dt
             return "searching"
-        log.info("peg-in-hole: search phase %d ended after %.2f mm (lag %.2f mm, |M| %.2f N·m)", self.phase,
-                 self.slid * 1e3, lag * 1e3, m)
+        log.info("peg-in-hole: search phase %d ended after %.2f mm (lag %.2f mm, lifted %.2f mm, |M| %.2f N·m)",
+                 self.phase, self.slid * 1e3, lag * 1e3, (tip.translation[2] - ref.translation[2]) * 1e3, m)
         if dist is None:  # blocked: drop the wound-up reference so the wall is not pushed
             ref.translation[:2] = tip.translation[:2]
         if self.phase == 2:
