@@ -43,7 +43,7 @@ def predicted_jam_depth(fit: Fit, tilt_rad: float) -> float:
     return c_eff / math.tan(tilt_rad) + fit.peg_d / 2 * math.sin(tilt_rad)
 
 
-def _fixture(fit: Fit, segments: int, solimp: str, solref: str) -> str:
+def _fixture(fit: Fit, segments: int, solimp: str, solref: str) -> tuple[str, str]:
     scene = SceneConfig(kind="peg", table_height=0.0, hole_center=[0.0, 0.0], hole_diameter=fit.hole_d,
                         hole_depth=fit.depth)
     return mjcf.hole_fixture(scene, PEG_FRICTION, segments=segments, solimp=solimp, solref=solref)
@@ -54,6 +54,7 @@ def _rig(fit: Fit, segments: int, solimp: str, tilt_rad: float, x0: float, z0: f
     """The fixture (mouth at z = 0, bore along z) and a peg body on slide joints along world x and z, held at
     `tilt_rad` about y: its origin is the centre of its bottom face, its axis leaning toward +x."""
     r, half = fit.peg_d / 2, fit.peg_length / 2
+    asset, fixture = _fixture(fit, segments, solimp, f"{2 * dt:.6g} 1")
     # The peg's own contact parameters, as in the plant (sim/mjcf.py _tool); the fixture's win by priority.
     peg = (f'<body name="peg" pos="{x0:.9g} 0 {z0:.9g}" euler="0 {tilt_rad:.9g} 0">'
            f'<joint name="px" type="slide" axis="1 0 0" damping="{damping:.6g}"/>'
@@ -63,7 +64,7 @@ def _rig(fit: Fit, segments: int, solimp: str, tilt_rad: float, x0: float, z0: f
     xml = (f'<mujoco><compiler angle="radian"/><option timestep="{dt}" integrator="implicitfast"'
            f' cone="elliptic" impratio="5" gravity="0 0 0" ccd_tolerance="{ccd_tolerance:.3g}">'
            '<flag multiccd="enable"/></option><size memory="20M"/>'
-           f"<worldbody>{_fixture(fit, segments, solimp, f'{2 * dt:.6g} 1')}{peg}</worldbody></mujoco>")
+           f"<asset>{asset}</asset><worldbody>{fixture}{peg}</worldbody></mujoco>")
     return mujoco.MjModel.from_xml_string(xml)
 
 
@@ -129,7 +130,7 @@ def bore_error(fit: Fit, segments: int = mjcf.HOLE_WALL_SEGMENTS, samples: int =
     m = _rig(fit, segments, mjcf.FIT_SOLIMP, 0.0, 0.0, -0.01, 0.6)
     d = mujoco.MjData(m)
     peg = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "peg")
-    walls = [g for g in range(m.ngeom) if g != peg and m.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX][:segments]
+    walls = [g for g in range(m.ngeom) if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH]
     fromto = np.zeros(6)
     worst = 0.0
 

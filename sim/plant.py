@@ -273,7 +273,7 @@ class Plant:
         """One `mj_step`; a step whose collision detection failed is taken again, more precisely.
 
         MuJoCo's convex collider (CCD, default `ccd_tolerance` 1e-6) now and then gets a contact wrong
-        (`failed_contact`): a 4.8 mm phantom (a fixture ring box's width) at a survey touch, whose 13 kN
+        (`failed_contact`): a 4.8 mm phantom (the width of a fixture ring's box) at a survey touch, whose 13 kN
         impulse kicked the arm into a joint-torque stop; a 0.27 mm jump within 1 ms as the peg slid along
         the wall at 8 mm/s, read as a 113 N spike; a wall contact with its normal reversed.  Such a step is
         taken again from the state before it with `RECOLLIDE_TOLERANCE`, which resolves them.  (A tight

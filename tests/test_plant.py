@@ -284,7 +284,7 @@ class TestCollider:
         d.contact.frame[0, :3] *= -1  # the normal the collider got wrong now and then at 1e-6
         assert failed_contact(m, d) == "a contact normal pointing the wrong way"
         d.contact.frame[0, :3] *= -1
-        d.contact.dist[0] = -0.002  # a phantom as deep as a ring box
+        d.contact.dist[0] = -0.002  # a phantom millimetres deep
         assert failed_contact(m, d) == "a 2.00 mm deep contact"
 
     def test_at_the_plants_tolerance_a_peg_pushed_past_the_mouths_edge_keeps_its_contacts_right(self):
