@@ -25,7 +25,8 @@ FIT_SOLIMP = "0.95 0.99 0.0005"
 PAD_MASS = 1.0  # kg: a spring-loaded wiping head; a lighter one chatters against the rigid table at 1 ms
 # The convex collider's tolerance [m].  Contacts here penetrate 0.1-10 um, so MuJoCo's default (1e-6) is
 # as large as the penetration itself: it reversed contact normals in ~5 % of the peg bench's physics steps
-# (the peg pulled into the wall it touches: 87 N spikes, jams at the 0.05 mm fit).  See config/plants/README.md.
+# (the peg pulled into the wall it touches: 87 N spikes, jams at the 0.05 mm fit), and its multi-point mode
+# (multiccd, off) gave the mouth's corner contacts 20-55 um deep along the wrong face.  See config/plants/README.md.
 CCD_TOLERANCE = 1e-9
 HOLE_WALL_THICKNESS = 0.012  # m, radial; wide enough to land a peg that is off by a few mm
 
@@ -225,7 +226,7 @@ def build_mjcf(
         '<compiler angle="radian" autolimits="true"/>'
         f'<option timestep="{physics_dt:.6g}" integrator="implicitfast" cone="elliptic" impratio="5"'
         f' ccd_tolerance="{CCD_TOLERANCE:.3g}">'
-        '<flag multiccd="enable"/></option>'
+        '<flag multiccd="disable"/></option>'
         '<size memory="20M"/>'
         + (f"<asset>{asset}</asset>" if asset else "")
         + '<worldbody><geom name="floor" type="plane" size="2 2 0.1" rgba=".9 .9 .9 1" contype="0" conaffinity="0"/>'

@@ -63,7 +63,7 @@ def _rig(fit: Fit, segments: int, solimp: str, tilt_rad: float, x0: float, z0: f
            ' friction="0.25 0.005 0.0001" solref="0.002 1" solimp="0.95 0.99 0.0005"/></body>')
     xml = (f'<mujoco><compiler angle="radian"/><option timestep="{dt}" integrator="implicitfast"'
            f' cone="elliptic" impratio="5" gravity="0 0 0" ccd_tolerance="{ccd_tolerance:.3g}">'
-           '<flag multiccd="enable"/></option><size memory="20M"/>'
+           '<flag multiccd="disable"/></option><size memory="20M"/>'
            f"<asset>{asset}</asset><worldbody>{fixture}{peg}</worldbody></mujoco>")
     return mujoco.MjModel.from_xml_string(xml)
 
