@@ -12,11 +12,9 @@ import pinocchio as pin
 from cell.config import TOOLS, SceneConfig
 from sim.profile import LINKS, PlantProfile
 
-# The hole's wall: a ring of boxes whose inner faces are tangent to the bore.  A round peg touches only the
+# The hole's wall: a ring of prisms whose inner faces are tangent to the bore.  A round peg touches only the
 # faces, so the polygon costs the fit r (1/cos(pi/n) - 1) of its clearance only: measured through the
-# collider, the bore's diameter errs by < 2 um at 32 segments (sim/peg_fit.py bore_error).  More, thinner
-# boxes do not help: a tilted peg on the mouth's edge then meets several boxes' top edges with opposing
-# contact normals, whose friction holds it (docs/peg-tight-fits.md).
+# collider, the bore's diameter errs by < 2 um at 32 segments (sim/peg_fit.py bore_error).
 HOLE_WALL_SEGMENTS = 32
 # Peg-on-fixture contacts (the fixture's geoms carry priority: these win over the peg's own, the same today).
 # Time constant at twice the 1 ms physics step (MuJoCo's stability floor); at the task's 15 N push a wedged
@@ -25,6 +23,11 @@ HOLE_WALL_SEGMENTS = 32
 FIT_SOLREF = "0.002 1"
 FIT_SOLIMP = "0.95 0.99 0.0005"
 PAD_MASS = 1.0  # kg: a spring-loaded wiping head; a lighter one chatters against the rigid table at 1 ms
+# The convex collider's tolerance [m].  Contacts here penetrate 0.1-10 um, so MuJoCo's default (1e-6) is
+# as large as the penetration itself: it reversed contact normals in ~5 % of the peg bench's physics steps
+# (the peg pulled into the wall it touches: 87 N spikes, jams at the 0.05 mm fit), and its multi-point mode
+# (multiccd, off) gave the mouth's corner contacts 20-55 um deep along the wrong face.  See config/plants/README.md.
+CCD_TOLERANCE = 1e-9
 HOLE_WALL_THICKNESS = 0.012  # m, radial; wide enough to land a peg that is off by a few mm
 
 
@@ -130,35 +133,41 @@ def _table(scene: SceneConfig, profile: PlantProfile) -> str:
 
 
 def hole_fixture(scene: SceneConfig, friction: float, tilt: tuple[float, float] = (0.0, 0.0),
-                 segments: int = HOLE_WALL_SEGMENTS, solimp: str = FIT_SOLIMP, solref: str = FIT_SOLREF) -> str:
-    """A ring of boxes whose inner faces are tangent to the hole (no chamfer), and a bottom plate.
+                 segments: int = HOLE_WALL_SEGMENTS, solimp: str = FIT_SOLIMP, solref: str = FIT_SOLREF
+                 ) -> tuple[str, str]:
+    """A ring of prisms whose inner faces are tangent to the hole (no chamfer), and a bottom plate: the
+    fixture's mesh asset and its body.
 
-    `tilt` (rad, about world x then y, through the centre of the hole's mouth) tilts the whole
-    fixture: the hole axis the peg-in-hole bench hides from the task."""
+    Each prism is a segment of the ring, with radial sides that meet its neighbours' face to face: the fixture's
+    top is flat.  (Overlapping boxes, as before, left each box's side face buried in its neighbour, and a peg
+    rim crossing the line where it met the top touched that buried face: horizontal contacts of 100 N at a 1.5
+    mm/s survey touch.)  `tilt` (rad, about world x then y, through the centre of the hole's mouth) tilts the
+    whole fixture: the hole axis the peg-in-hole bench hides from the task."""
     cx, cy = scene.hole_center
     r_in = scene.hole_diameter / 2
     depth = scene.hole_depth
     top = scene.table_height
     n = segments
     t = HOLE_WALL_THICKNESS
-    half_w = (r_in + t) * math.tan(math.pi / n) * 1.05
+    # The segment about +x: its inner face is the tangent plane x = r_in, its sides the rays at +-pi/n.
+    half = math.tan(math.pi / n)
+    corners = [(r, side * r * half) for r in (r_in, r_in + t) for side in (-1, 1)]
+    vertex = " ".join(f"{x:.9g} {y:.9g} {z:.9g}" for z in (-depth, 0.0) for x, y in corners)
+    mesh = f"hole_wall_{n}"
+    asset = f'<mesh name="{mesh}" vertex="{vertex}"/>'
     geoms = [f'<body name="fixture" pos="{cx:.6g} {cy:.6g} {top:.6g}" euler="{tilt[0]:.9g} {tilt[1]:.9g} 0">']
     contact = (f'friction="{friction:.6g} 0.005 0.0001" priority="1" solref="{solref}"'
                f' solimp="{solimp}"')
     for i in range(n):
-        a = 2 * math.pi * i / n
-        x, y = (r_in + t / 2) * math.cos(a), (r_in + t / 2) * math.sin(a)
-        geoms.append(
-            f'<geom type="box" pos="{x:.7g} {y:.7g} {-depth / 2:.6g}" euler="0 0 {a:.7g}"'
-            f' size="{t / 2:.6g} {half_w:.6g} {depth / 2:.6g}" rgba=".5 .5 .55 1" {contact}/>'
-        )
+        geoms.append(f'<geom type="mesh" mesh="{mesh}" euler="0 0 {2 * math.pi * i / n:.9g}"'
+                     f' rgba=".5 .5 .55 1" {contact}/>')
     geoms.append(
         f'<geom name="hole_bottom" type="box" pos="0 0 {-depth - 0.005:.6g}" size="{r_in + t:.6g}'
         f' {r_in + t:.6g} 0.005" rgba=".4 .4 .45 1" {contact}/>'
     )
     geoms.append('<site name="hole_top" pos="0 0 0"/>')
     geoms.append("</body>")
-    return "".join(geoms)
+    return asset, "".join(geoms)
 
 
 OBSTACLE_HALF = (0.1, 0.1, 0.01)  # m: the collision bench's plates (half sizes; the face is the xy plane)
@@ -197,11 +206,11 @@ def build_mjcf(
         raise ValueError(f"unknown tool {kind!r} ({' or '.join(TOOLS)})")
     opening, closing = _arm_bodies(urdf, profile)
     tool_xml, tcp = _tool(profile, kind)
-    world = ""
+    world = asset = ""
     if scene.kind == "table":
         world = _table(scene, profile)
     elif scene.kind == "peg":
-        world = hole_fixture(scene, profile.tool.peg_friction, fixture_tilt)
+        asset, world = hole_fixture(scene, profile.tool.peg_friction, fixture_tilt)
     # Bodies with joints of their own come after the arm: the plant takes the first six dofs as the arm's.
     after = _obstacles() if scene.kind == "obstacle" else ""
     # The servo's PD acts through position actuators so that MuJoCo integrates its stiffness and
@@ -215,10 +224,12 @@ def build_mjcf(
     xml = (
         '<mujoco model="tm5-700-plant">'
         '<compiler angle="radian" autolimits="true"/>'
-        f'<option timestep="{physics_dt:.6g}" integrator="implicitfast" cone="elliptic" impratio="5">'
-        '<flag multiccd="enable"/></option>'
+        f'<option timestep="{physics_dt:.6g}" integrator="implicitfast" cone="elliptic" impratio="5"'
+        f' ccd_tolerance="{CCD_TOLERANCE:.3g}">'
+        '<flag multiccd="disable"/></option>'
         '<size memory="20M"/>'
-        '<worldbody><geom name="floor" type="plane" size="2 2 0.1" rgba=".9 .9 .9 1" contype="0" conaffinity="0"/>'
+        + (f"<asset>{asset}</asset>" if asset else "")
+        + '<worldbody><geom name="floor" type="plane" size="2 2 0.1" rgba=".9 .9 .9 1" contype="0" conaffinity="0"/>'
         + world
         + '<body name="base">'
         + "".join(opening)

@@ -11,6 +11,7 @@ import numpy as np
 
 from cell.config import SceneConfig
 from sim import mjcf
+from sim.plant import failed_contact
 from sim.profile import ToolProfile
 
 PHYSICS_DT = 0.001  # the plant's physics step (sim/profile.py physics_dt_s)
@@ -42,17 +43,18 @@ def predicted_jam_depth(fit: Fit, tilt_rad: float) -> float:
     return c_eff / math.tan(tilt_rad) + fit.peg_d / 2 * math.sin(tilt_rad)
 
 
-def _fixture(fit: Fit, segments: int, solimp: str, solref: str) -> str:
+def _fixture(fit: Fit, segments: int, solimp: str, solref: str) -> tuple[str, str]:
     scene = SceneConfig(kind="peg", table_height=0.0, hole_center=[0.0, 0.0], hole_diameter=fit.hole_d,
                         hole_depth=fit.depth)
     return mjcf.hole_fixture(scene, PEG_FRICTION, segments=segments, solimp=solimp, solref=solref)
 
 
 def _rig(fit: Fit, segments: int, solimp: str, tilt_rad: float, x0: float, z0: float, mass: float,
-         damping: float = 0.0, dt: float = PHYSICS_DT) -> mujoco.MjModel:
+         damping: float = 0.0, dt: float = PHYSICS_DT, ccd_tolerance: float = mjcf.CCD_TOLERANCE) -> mujoco.MjModel:
     """The fixture (mouth at z = 0, bore along z) and a peg body on slide joints along world x and z, held at
     `tilt_rad` about y: its origin is the centre of its bottom face, its axis leaning toward +x."""
     r, half = fit.peg_d / 2, fit.peg_length / 2
+    asset, fixture = _fixture(fit, segments, solimp, f"{2 * dt:.6g} 1")
     # The peg's own contact parameters, as in the plant (sim/mjcf.py _tool); the fixture's win by priority.
     peg = (f'<body name="peg" pos="{x0:.9g} 0 {z0:.9g}" euler="0 {tilt_rad:.9g} 0">'
            f'<joint name="px" type="slide" axis="1 0 0" damping="{damping:.6g}"/>'
@@ -60,8 +62,9 @@ def _rig(fit: Fit, segments: int, solimp: str, tilt_rad: float, x0: float, z0: f
            f'<geom name="peg" type="cylinder" pos="0 0 {half:.9g}" size="{r:.9g} {half:.9g}" mass="{mass:.6g}"'
            ' friction="0.25 0.005 0.0001" solref="0.002 1" solimp="0.95 0.99 0.0005"/></body>')
     xml = (f'<mujoco><compiler angle="radian"/><option timestep="{dt}" integrator="implicitfast"'
-           ' cone="elliptic" impratio="5" gravity="0 0 0"><flag multiccd="enable"/></option><size memory="20M"/>'
-           f"<worldbody>{_fixture(fit, segments, solimp, f'{2 * dt:.6g} 1')}{peg}</worldbody></mujoco>")
+           f' cone="elliptic" impratio="5" gravity="0 0 0" ccd_tolerance="{ccd_tolerance:.3g}">'
+           '<flag multiccd="disable"/></option><size memory="20M"/>'
+           f"<asset>{asset}</asset><worldbody>{fixture}{peg}</worldbody></mujoco>")
     return mujoco.MjModel.from_xml_string(xml)
 
 
@@ -75,11 +78,12 @@ class Wedge:
     max_penetration_m: float  # deepest peg-fixture contact over the run
     max_contact_force_n: float  # the largest single contact's normal force over the run
     wall_s_per_sim_s: float
+    failed_steps: int = 0  # steps whose contacts the collider got wrong (sim/plant.py failed_contact)
 
 
 def wedge(fit: Fit, tilt_deg: float, push_n: float = 15.0, side_n: float = 3.0, mass: float = 0.6,
           segments: int = mjcf.HOLE_WALL_SEGMENTS, solimp: str = mjcf.FIT_SOLIMP, feed_mps: float = 0.005,
-          sim_s: float | None = None, dt: float = PHYSICS_DT) -> Wedge:
+          sim_s: float | None = None, dt: float = PHYSICS_DT, ccd_tolerance: float = mjcf.CCD_TOLERANCE) -> Wedge:
     """Push a peg held at `tilt_deg` down the hole with `push_n` (and `side_n` toward the side it leans on the
     mouth's edge) until it stops; where it stops against predicted_jam_depth, and the contacts' penetration.
 
@@ -95,7 +99,7 @@ def wedge(fit: Fit, tilt_deg: float, push_n: float = 15.0, side_n: float = 3.0, 
     x0 = x_side - r * math.cos(a) - s * math.sin(a)
     # Viscous slides: the push drives the peg at `feed_mps` in free motion, as the servo feeds the arm's peg
     # (a free 0.6 kg peg under 15 N would hit the wedge at metres per second).
-    m = _rig(fit, segments, solimp, a, x0, z0, mass, damping=push_n / feed_mps, dt=dt)
+    m = _rig(fit, segments, solimp, a, x0, z0, mass, damping=push_n / feed_mps, dt=dt, ccd_tolerance=ccd_tolerance)
     if sim_s is None:  # long enough to feed past the predicted wedge with room to settle
         sim_s = 0.4 + 1.5 * predicted_jam_depth(fit, a) / feed_mps
     d = mujoco.MjData(m)
@@ -103,18 +107,20 @@ def wedge(fit: Fit, tilt_deg: float, push_n: float = 15.0, side_n: float = 3.0, 
     f6 = np.zeros(6)
     steps = int(round(sim_s / dt))
     pen = fmax = 0.0
+    failed = 0
     t0 = time.perf_counter()
     for k in range(steps):
         ramp = min(1.0, (k + 1) / (0.1 / dt))  # load up over 0.1 s (no impact at the start)
         d.xfrc_applied[body, :3] = [side_n * ramp, 0.0, -push_n * ramp]
         mujoco.mj_step(m, d)
+        failed += failed_contact(m, d) is not None
         for i in range(d.ncon):
             pen = max(pen, -float(d.contact[i].dist))
             mujoco.mj_contactForce(m, d, i, f6)
             fmax = max(fmax, float(f6[0]))
     wall = time.perf_counter() - t0
     return Wedge(tilt_deg=tilt_deg, predicted_depth_m=predicted_jam_depth(fit, a), depth_m=-float(d.xpos[body][2]),
-                 max_penetration_m=pen, max_contact_force_n=fmax, wall_s_per_sim_s=wall / sim_s)
+                 max_penetration_m=pen, max_contact_force_n=fmax, wall_s_per_sim_s=wall / sim_s, failed_steps=failed)
 
 
 def bore_error(fit: Fit, segments: int = mjcf.HOLE_WALL_SEGMENTS, samples: int = 9) -> float:
@@ -124,7 +130,7 @@ def bore_error(fit: Fit, segments: int = mjcf.HOLE_WALL_SEGMENTS, samples: int =
     m = _rig(fit, segments, mjcf.FIT_SOLIMP, 0.0, 0.0, -0.01, 0.6)
     d = mujoco.MjData(m)
     peg = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "peg")
-    walls = [g for g in range(m.ngeom) if g != peg and m.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX][:segments]
+    walls = [g for g in range(m.ngeom) if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH]
     fromto = np.zeros(6)
     worst = 0.0
 

@@ -26,6 +26,29 @@ MAX_CONTACT_DEPTH_M = 1e-4
 RECOLLIDE_TOLERANCE = 1e-10
 
 
+def failed_contact(model: mujoco.MjModel, data: mujoco.MjData) -> str | None:
+    """Why the collider's contacts of the step just taken cannot be right, or None.
+
+    Every geom here is convex, so at a true contact the normal (from geom1 to geom2) supports both: each
+    geom's centre lies on its own side of the contact point, to within the penetration.  Two failures of
+    MuJoCo's convex collider are caught: a contact far deeper than the bodies' motion allows, and a normal
+    pointing the wrong way (a peg on the bore's wall got a +y normal where the wall faces -y: its 133 N
+    and its neighbour's opposite 150 N squeezed the peg, and their friction read 87 N at the F/T sensor)."""
+    n = data.ncon
+    if n == 0:
+        return None
+    c = data.contact
+    depth = -float(np.min(c.dist[:n]))
+    if depth > MAX_CONTACT_DEPTH_M:
+        return f"a {depth * 1e3:.2f} mm deep contact"
+    normal, pos, geoms = c.frame[:n, :3], c.pos[:n], c.geom[:n]
+    own1 = np.einsum("ij,ij->i", data.geom_xpos[geoms[:, 0]] - pos, normal)
+    own2 = np.einsum("ij,ij->i", data.geom_xpos[geoms[:, 1]] - pos, normal)
+    if np.any(own1 > MAX_CONTACT_DEPTH_M) or np.any(own2 < -MAX_CONTACT_DEPTH_M):
+        return "a contact normal pointing the wrong way"
+    return None
+
+
 def _hermite_basis(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cubic Hermite basis (value, d/du, d2/du2) at u = k/n, k = 1..n, for control rows
     [p_start, p_end, T*v_start, T*v_end]."""
@@ -249,18 +272,17 @@ class Plant:
     def _physics_step(self) -> None:
         """One `mj_step`; a step whose collision detection failed is taken again, more precisely.
 
-        MuJoCo's convex collider (CCD, default `ccd_tolerance` 1e-6) now and then reports a contact far
-        deeper than the bodies' motion allows: a 4.8 mm phantom (a fixture ring box's width) at a survey
-        touch, whose 13 kN impulse kicked the arm into a joint-torque stop; a 0.27 mm jump within 1 ms
-        as the peg slid along the wall at 8 mm/s, read as a 113 N spike.  A contact deeper than
-        `MAX_CONTACT_DEPTH_M` is taken for such a failure: the step is taken again from the state before
-        it with `RECOLLIDE_TOLERANCE`, which resolves both.  (A tight tolerance for every step changes
-        every contact's dynamics: see config/plants/README.md.)"""
+        MuJoCo's convex collider (CCD, default `ccd_tolerance` 1e-6) now and then gets a contact wrong
+        (`failed_contact`): a 4.8 mm phantom (the width of a fixture ring's box) at a survey touch, whose 13 kN
+        impulse kicked the arm into a joint-torque stop; a 0.27 mm jump within 1 ms as the peg slid along
+        the wall at 8 mm/s, read as a 113 N spike; a wall contact with its normal reversed.  Such a step is
+        taken again from the state before it with `RECOLLIDE_TOLERANCE`, which resolves them.  (A tight
+        tolerance for every step changes every contact's dynamics: see config/plants/README.md.)"""
         m, d = self.model, self.data
         mujoco.mj_getState(m, d, self._saved, STEP_STATE)
         mujoco.mj_step(m, d)
-        depth = -float(np.min(d.contact.dist[:d.ncon])) if d.ncon else 0.0
-        if depth > MAX_CONTACT_DEPTH_M:
+        why = failed_contact(m, d)
+        if why is not None:
             mujoco.mj_setState(m, d, self._saved, STEP_STATE)
             tol = m.opt.ccd_tolerance
             m.opt.ccd_tolerance = RECOLLIDE_TOLERANCE
@@ -269,9 +291,9 @@ class Plant:
             finally:
                 m.opt.ccd_tolerance = tol
             self.recollided += 1
-            log.debug("plant: a %.1f mm contact at t=%.3f s: step taken again with ccd_tolerance %g",
-                      depth * 1e3, d.time, RECOLLIDE_TOLERANCE)
-            depth = -float(np.min(d.contact.dist[:d.ncon])) if d.ncon else 0.0
+            log.debug("plant: %s at t=%.3f s: step taken again with ccd_tolerance %g",
+                      why, d.time, RECOLLIDE_TOLERANCE)
+        depth = -float(np.min(d.contact.dist[:d.ncon])) if d.ncon else 0.0
         self.max_penetration = max(self.max_penetration, depth)
 
     def _wipe_friction(self, v_eps: float = 0.005) -> None:

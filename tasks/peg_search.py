@@ -63,6 +63,7 @@ class WallSearch:
         self.stalled = 0
         self.phase_from = np.zeros(3)
         self.slide_from = np.zeros(3)
+        self.settled = False
         self.slid = 0.0
         self.chord_a = np.zeros(3)
         self.chord_mid = 0.0
@@ -71,7 +72,7 @@ class WallSearch:
         self.reason = ""  # why the search was lost
 
     def begin(self, ref: pin.SE3, tip: pin.SE3) -> None:
-        """Start from the measured tip (the reference drops the approach's wound-up push)."""
+        """Start from the measured tip: the reference moves there first (it drops the approach's wound-up push)."""
         self.chord_retries = 0
         self.chord_free = 0.0
         self.phase = 0
@@ -81,13 +82,23 @@ class WallSearch:
         self.stalled = 0
         self.phase_from = tip.translation.copy()
         self.slide_from = tip.translation.copy()
-        ref.translation[:] = tip.translation
+        self.settled = False  # the reference has reached slide_from
         self.slid = 0.0
 
     def step(self, ref: pin.SE3, tip: pin.SE3, lead: np.ndarray, mx: float, my: float) -> SearchStep:
         """One control step: "searching", "on_wall" (leaning on the wall on the centred line) or "lost"
         (no wall within max_slide_m; `reason` says so)."""
         c = self.cfg
+        # The reference goes to where the probe left the tip at the lift's speed, not in one period: a contact
+        # can push the tip 0.7 mm off its held reference while probing, and that jump in one period swung
+        # joint 1 past its torque limit (the servo's wound-up integral and damping).
+        if not self.settled:
+            gap = self.slide_from - ref.translation
+            step = c.backoff_speed_mps * self.dt
+            dist = float(np.linalg.norm(gap))
+            ref.translation += gap if dist <= step else gap / dist * step
+            self.settled = dist <= step
+            return "searching"
         if ref.translation[2] < self.slide_from[2] + c.slide_lift_m:
             ref.translation[2] += c.backoff_speed_mps * self.dt
             return "searching"
@@ -128,6 +139,7 @@ class WallSearch:
             done = self.slid >= dist - 1e-9 and self.phase_time > 0.1
         elif self.slid > max(fast, c.min_probe_travel_m) and (
                 (moved > c.min_probe_travel_m and lag > c.slide_block_m)
+                or tip.translation[2] - ref.translation[2] > c.slide_climb_m
                 or (moved > c.min_probe_travel_m and self.stalled >= 1)
                 or (self.phase_clear and np.isfinite(m) and m > c.block_moment_nm)):
             done = True
@@ -138,8 +150,8 @@ class WallSearch:
         if not done:
             self.phase_time += self.dt
             return "searching"
-        log.info("peg-in-hole: search phase %d ended after %.2f mm (lag %.2f mm, |M| %.2f N·m)", self.phase,
-                 self.slid * 1e3, lag * 1e3, m)
+        log.info("peg-in-hole: search phase %d ended after %.2f mm (lag %.2f mm, lifted %.2f mm, |M| %.2f N·m)",
+                 self.phase, self.slid * 1e3, lag * 1e3, (tip.translation[2] - ref.translation[2]) * 1e3, m)
         if dist is None:  # blocked: drop the wound-up reference so the wall is not pushed
             ref.translation[:2] = tip.translation[:2]
         if self.phase == 2:

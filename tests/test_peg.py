@@ -369,3 +369,55 @@ def test_upright_on_the_wall_the_peg_steps_onto_the_axis_gradually_before_feedin
     assert task.ref.translation[0] - start[0] == pytest.approx(0.0002)  # off the lead wall by the clearance
     task._insert(None, 0.0, 0.0, 0.0)  # then the feed along the peg's axis
     assert task.ref.translation[2] < start[2]
+
+
+@pytest.mark.parametrize("climb_m, ends", [(0.0002, True), (0.0001, False)])
+def test_a_search_move_carried_up_the_mouths_edge_has_met_the_wall(pcfg, climb_m, ends):
+    # The wall can stop a search move by lifting the peg rather than holding it back (the tilted peg's
+    # lead edge rides up the mouth's edge): past slide_climb_m above its reference, the move has met it.
+    import pinocchio as pin
+
+    from tasks.peg_search import WallSearch
+
+    dt = 0.008
+    search = WallSearch(pcfg, dt)
+    ref, tip = pin.SE3.Identity(), pin.SE3.Identity()
+    search.begin(ref, tip)
+    lead = np.array([1.0, 0.0, 0.0])
+    status = "searching"
+    for _ in range(int(0.5 / dt) + int(pcfg.max_slide_m / (pcfg.slide_slow_speed_mps * dt))):
+        tip = ref.copy()  # the tip follows its reference exactly ...
+        if search.slid > pcfg.slide_fast_m:
+            tip.translation[2] += climb_m  # ... until the lead edge meets the edge and climbs
+        status = search.step(ref, tip, lead, 0.0, 0.0)
+        if search.phase > 0 or status != "searching":
+            break
+    if ends:
+        assert search.phase == 1 and status == "searching"
+        assert search.slid == 0.0  # the next phase (back off along the lead) has begun
+    else:
+        assert status == "lost" and search.phase == 0
+
+
+def test_a_search_starts_by_moving_its_reference_to_the_tip_gradually(pcfg):
+    # A contact can push the tip 0.7 mm off the reference the probe held; jumping the reference there in one
+    # period swung joint 1 past its torque limit.  It travels at the lift's speed instead.
+    import pinocchio as pin
+
+    from tasks.peg_search import WallSearch
+
+    dt = 0.008
+    search = WallSearch(pcfg, dt)
+    ref, tip = pin.SE3.Identity(), pin.SE3.Identity()
+    tip.translation[:] = [0.0003, -0.0007, -0.0002]
+    search.begin(ref, tip)
+    path = [ref.translation.copy()]
+    for _ in range(40):
+        search.step(ref, tip, np.array([1.0, 0.0, 0.0]), 0.0, 0.0)
+        path.append(ref.translation.copy())
+        if np.allclose(ref.translation[:2], tip.translation[:2]) and ref.translation[2] > tip.translation[2]:
+            break
+    steps = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    assert steps.max() <= pcfg.backoff_speed_mps * dt + 1e-12
+    assert np.allclose(path[-1][:2], tip.translation[:2])  # there, and then lifting off as before
+    assert len(path) > 0.00079 / (pcfg.backoff_speed_mps * dt)
