@@ -95,9 +95,9 @@ class WallSearch:
         if not self.settled:
             gap = self.slide_from - ref.translation
             step = c.backoff_speed_mps * self.dt
-            dist = float(np.linalg.norm(gap))
-            ref.translation += gap if dist <= step else gap / dist * step
-            self.settled = dist <= step
+            left = float(np.linalg.norm(gap))
+            ref.translation += gap if left <= step else gap / left * step
+            self.settled = left <= step
             return "searching"
         if ref.translation[2] < self.slide_from[2] + c.slide_lift_m:
             ref.translation[2] += c.backoff_speed_mps * self.dt
