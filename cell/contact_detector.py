@@ -6,7 +6,8 @@ momentum observer of its own, with a far higher bandwidth than the virtual senso
 for steady contact forces and filters short impacts away).  Per joint the threshold is
 
     thr_j = floor_j + sigma_factor * sigma_j(|q'_j|) + band_j * max(0, 1 - |q'_j| / stick_speed)
-            + inertia * max(|(M(q) q'')_j|, |(M(q) q''_cmd)_j|) + payload_kg * |g1_j(q) - g1_j(q_zero)|
+            + inertia * max(|(M(q) q'')_j|, |(M(q) q''_cmd)_j|)
+            + payload_kg * (|g1_j(q) - g1_j(q_zero)| + sum_i |J_ij| |a_i|)
 
 * sigma_j: the model's one-sigma residual at that joint speed (the model lab's held-out levels, stored
   with the model; wider where the model is less sure, e.g. at high speed), and the physics part's
@@ -21,7 +22,9 @@ for steady contact forces and filters short impacts away).  Per joint the thresh
   estimate).  The command is the arm's intent, so an impact, which changes the measured motion but
   not the command, does not widen its own threshold;
 * g1: the joint torques of 1 kg of payload at the tool's centre of mass (an unknown payload error
-  moves the gravity torque by this per kg, relative to where the residual was last zeroed);
+  moves the gravity torque by this per kg, relative to where the residual was last zeroed); J, a: that
+  point's Jacobian and commanded acceleration (the same error's inertial load, which showed as a 1.06x
+  joint-5 alarm while braking with +0.45 kg);
 * floor_j: what is left (quantisation, the servo's transients) and the configured margin.
 
 In free motion a joint over its threshold for `confirm_periods` periods in a row is a collision.  In a
@@ -147,6 +150,8 @@ class CollisionDetector:
         self._cmds: collections.deque[np.ndarray] = collections.deque(maxlen=3)
         self._cmd_inertial: collections.deque[np.ndarray] = collections.deque(
             maxlen=max(1, self.settings.command_window_periods))
+        self._cmd_payload: collections.deque[np.ndarray] = collections.deque(
+            maxlen=max(1, self.settings.command_window_periods))
 
     def rebias(self) -> None:
         """Zero the residual here (arm at rest, no contact): the payload term then counts from this pose."""
@@ -157,6 +162,14 @@ class CollisionDetector:
     def _payload_gravity(self, q: np.ndarray) -> np.ndarray:
         J = pin.computeFrameJacobian(self._pm, self._pd, q, self._com_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
         return np.asarray(J[:3].T @ GRAVITY)
+
+    def _payload_inertial(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """Per kg at the tool's centre of mass: sum_i |J_ij| |a_i|, a its linear acceleration (q, q', q'')."""
+        pin.forwardKinematics(self._pm, self._pd, q, v, a)
+        acc = pin.getFrameClassicalAcceleration(self._pm, self._pd, self._com_id,
+                                                pin.ReferenceFrame.LOCAL_WORLD_ALIGNED).linear
+        J = pin.computeFrameJacobian(self._pm, self._pd, q, self._com_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        return np.asarray(np.abs(J[:3]).T @ np.abs(acc))
 
     def thresholds(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
         s = self.settings
@@ -183,6 +196,8 @@ class CollisionDetector:
         if s.payload_uncertainty_kg > 0:
             g = self._payload_gravity(q)
             thr += s.payload_uncertainty_kg * np.abs(g - self._g_zero if self._zeroed else g)
+            if self._cmd_payload:
+                thr += s.payload_uncertainty_kg * np.max(np.asarray(self._cmd_payload), axis=0)
         return thr
 
     def update(self, state: ArmState) -> np.ndarray:
@@ -212,6 +227,9 @@ class CollisionDetector:
             # Each entry of M may be off by its share: the bound is sum_k |M_jk| |a_k|, not |(M a)_j|
             # (a wrist joint barely commanded still carries the errors of the base joints' coupling).
             self._cmd_inertial.append(np.abs(self.observer.mass) @ np.abs(a))
+            if self.settings.payload_uncertainty_kg > 0:
+                self._cmd_payload.append(self._payload_inertial(self._cmds[2], (self._cmds[2] - self._cmds[1])
+                                                                / self.dt, a))
 
     def check_free(self) -> np.ndarray:
         """Joints (0-based) over their thresholds for `confirm_periods` periods in a row."""

@@ -164,6 +164,7 @@ def test_beyond_the_trained_speeds_the_thresholds_grow_with_speed(vs, model):
 
 def test_commanded_acceleration_widens_the_inertial_term_and_a_cruise_adds_nothing(vs, model):
     d = _guard(vs, model).detector
+    d.settings = dataclasses.replace(d.settings, payload_uncertainty_kg=0.0)  # its inertial part: the next test
     robot, dt = vs["robot"], vs["cfg"].loop.period_s
     q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
     moving = np.full(6, 0.5)
@@ -388,3 +389,33 @@ def test_the_pegs_head_on_speeds_and_its_feed_while_it_can_wedge(vs):
     wedge = peg.wedge_friction * peg.peg_diameter_m
     assert peg.feed_speed(0.5 * wedge, peg.free_insert_speed_mps) == peg.wedge_speed_mps
     assert peg.feed_speed(1.01 * wedge, peg.free_insert_speed_mps) == peg.free_insert_speed_mps
+
+
+def test_a_payload_error_widens_the_thresholds_by_its_inertial_load_at_the_commanded_acceleration(vs, model):
+    # +0.45 kg braking a fast wrist move read 1.06x on joint 5: the payload term carries the error's
+    # inertial load as well as its weight: payload_kg * sum_i |J_ij| |a_i| at the tool's centre of mass.
+    import pinocchio as pin
+
+    d = _guard(vs, model).detector
+    robot, dt = vs["robot"], vs["cfg"].loop.period_s
+    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    moving = np.full(6, 0.5)
+    d.update(ArmState(t=0.0, q=q, dq=np.zeros(6), tau=np.zeros(6)))
+    base = d.thresholds(q, moving, np.zeros(6))
+    a = np.array([0.0, 0.0, 0.0, 0.0, -40.0, 0.0])  # braking joint 5 from rest's speed 0: pure q''
+    for k in range(3):
+        d.commanded(q + 0.5 * a * (k * dt) ** 2)
+    widened = d.thresholds(q, moving, np.zeros(6))
+    # The same load computed apart: the centre of mass's acceleration by finite differences of its position.
+    pm, pd, fid = d._pm, d._pm.createData(), d._com_id
+    qs = [q + 0.5 * a * (k * dt) ** 2 for k in range(3)]
+    pos = []
+    for qk in qs:
+        pin.framesForwardKinematics(pm, pd, qk)
+        pos.append(pd.oMf[fid].translation.copy())
+    acc = (pos[2] - 2 * pos[1] + pos[0]) / dt**2
+    J = pin.computeFrameJacobian(pm, pd, qs[2], fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:3]
+    payload = d.settings.payload_uncertainty_kg * (np.abs(J).T @ np.abs(acc))
+    inertial = d.settings.inertia_uncertainty * (np.abs(d.observer.mass) @ np.abs(a))
+    assert np.allclose(widened - base, inertial + payload, rtol=0.05, atol=1e-3)
+    assert payload[4] > 0.01
