@@ -12,7 +12,7 @@ FITS = [Fit(peg_d=0.0217), Fit(peg_d=0.02175)]  # 0.1 mm and 0.05 mm diametral c
 
 @pytest.mark.parametrize("fit", FITS, ids=["0.1mm", "0.05mm"])
 def test_the_collider_sees_the_bore_within_a_tenth_of_the_clearance(fit):
-    # The wall is a ring of 32 boxes: a round peg moved out of the centre in any direction meets it where a
+    # The wall is a ring of 32 prisms: a round peg moved out of the centre in any direction meets it where a
     # true cylinder would, to a tenth of the fit.
     assert bore_error(fit) < fit.clearance / 10
 
