@@ -272,12 +272,11 @@ class Plant:
     def _physics_step(self) -> None:
         """One `mj_step`; a step whose collision detection failed is taken again, more precisely.
 
-        MuJoCo's convex collider (CCD, default `ccd_tolerance` 1e-6) now and then gets a contact wrong
-        (`failed_contact`): a 4.8 mm phantom (the width of a fixture ring's box) at a survey touch, whose 13 kN
-        impulse kicked the arm into a joint-torque stop; a 0.27 mm jump within 1 ms as the peg slid along
-        the wall at 8 mm/s, read as a 113 N spike; a wall contact with its normal reversed.  Such a step is
-        taken again from the state before it with `RECOLLIDE_TOLERANCE`, which resolves them.  (A tight
-        tolerance for every step changes every contact's dynamics: see config/plants/README.md.)"""
+        MuJoCo's convex collider (CCD) now and then gets a contact wrong (`failed_contact`).  At its default
+        1e-6 tolerance these were a 4.8 mm phantom at a survey touch (a 13 kN impulse), a 0.27 mm jump within
+        1 ms as the peg slid along the wall (a 113 N spike) and reversed wall normals (~5 % of the peg bench's
+        steps); at the plant's `CCD_TOLERANCE` (1e-9) 110-220 steps in a 50-trial bench remain.  Such a step
+        is taken again from the state before it with `RECOLLIDE_TOLERANCE` (config/plants/README.md)."""
         m, d = self.model, self.data
         mujoco.mj_getState(m, d, self._saved, STEP_STATE)
         mujoco.mj_step(m, d)
