@@ -56,6 +56,8 @@ class Trial:
     index: int = 0  # the trial's number in the bench's sequence of draws
     recollided: int = 0  # physics steps the plant took again after a failed collision detection
     max_penetration_m: float = 0.0  # the plant's deepest contact in any physics step
+    max_side_penetration_m: float = 0.0  # the same, of side contacts (on a wall, not a top face)
+    max_bore_penetration_m: float = 0.0  # the same, of side contacts in the bore (they widen the fit)
 
 
 class _Tap:
@@ -180,7 +182,8 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
         peak_state=meter.peak_state,
         probes=s["probes"], realignments=s["realignments"],
         abs_err=wrench_abs_errors(scored.states, np.array(scored.virtual), np.array(scored.measured)),
-        axis_error_deg=axis_err, index=index, recollided=plant.recollided, max_penetration_m=plant.max_penetration,
+        axis_error_deg=axis_err, index=index, recollided=plant.recollided, max_penetration_m=plant.penetration.any,
+        max_side_penetration_m=plant.penetration.side, max_bore_penetration_m=plant.penetration.bore,
     )
 
 
@@ -235,13 +238,18 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
         "max_realignments": max((r.realignments for r in results), default=None),
         # The plant's collision-detection failures, each re-solved (sim/plant.py Plant._physics_step).
         "recollided_steps": sum(r.recollided for r in results),
-        # The deepest contact of any physics step (a fit's clearance must be far larger)
+        # The deepest contact of any physics step; of side contacts (on a wall or the mouth's edge); of side
+        # contacts in the bore, whose give widens the fit (its clearance must be far larger)
         "max_penetration_um": max((r.max_penetration_m * 1e6 for r in results), default=None),
+        "max_side_penetration_um": max((r.max_side_penetration_m * 1e6 for r in results), default=None),
+        "max_bore_penetration_um": max((r.max_bore_penetration_m * 1e6 for r in results), default=None),
         "failure_kinds": count_kinds([(r.outcome, r.reason) for r in results if not r.success]),
         "per_trial": [{"trial": r.index, "success": r.success, "time_s": r.insertion_time_s,
                        "peak_force_n": round(r.peak_force_n, 1), "peak_state": r.peak_state,
                        "realignments": r.realignments, "probes": r.probes, "recollided_steps": r.recollided,
-                       "max_penetration_um": round(r.max_penetration_m * 1e6, 2)}
+                       "max_penetration_um": round(r.max_penetration_m * 1e6, 2),
+                       "max_side_penetration_um": round(r.max_side_penetration_m * 1e6, 2),
+                       "max_bore_penetration_um": round(r.max_bore_penetration_m * 1e6, 2)}
                       for r in results],
         "failures": [{"trial": r.index, "kind": failure_kind(r.outcome, r.reason),
                       "offset_mm": np.round(np.array(r.offset_m) * 1e3, 3).tolist(),

@@ -166,9 +166,10 @@ class CollisionDetector:
     def _payload_inertial(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
         """Per kg at the tool's centre of mass: sum_i |J_ij| |a_i|, a its linear acceleration (q, q', q'')."""
         pin.forwardKinematics(self._pm, self._pd, q, v, a)
+        pin.computeJointJacobians(self._pm, self._pd)  # on the placements just computed: one kinematics pass
         acc = pin.getFrameClassicalAcceleration(self._pm, self._pd, self._com_id,
                                                 pin.ReferenceFrame.LOCAL_WORLD_ALIGNED).linear
-        J = pin.computeFrameJacobian(self._pm, self._pd, q, self._com_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        J = pin.getFrameJacobian(self._pm, self._pd, self._com_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
         return np.asarray(np.abs(J[:3]).T @ np.abs(acc))
 
     def thresholds(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ import numpy as np
 
 from cell.config import SceneConfig
 from sim import mjcf
-from sim.plant import failed_contact
+from sim.plant import deepest_contact, failed_contact
 from sim.profile import ToolProfile
 
 PHYSICS_DT = 0.001  # the plant's physics step (sim/profile.py physics_dt_s)
@@ -114,8 +114,8 @@ def wedge(fit: Fit, tilt_deg: float, push_n: float = 15.0, side_n: float = 3.0, 
         d.xfrc_applied[body, :3] = [side_n * ramp, 0.0, -push_n * ramp]
         mujoco.mj_step(m, d)
         failed += failed_contact(m, d) is not None
+        pen = max(pen, deepest_contact(d))
         for i in range(d.ncon):
-            pen = max(pen, -float(d.contact[i].dist))
             mujoco.mj_contactForce(m, d, i, f6)
             fmax = max(fmax, float(f6[0]))
     wall = time.perf_counter() - t0

@@ -132,8 +132,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
         self.contact = contact
         if self.state not in (S.MOVE_TO_START, S.TARE, S.DONE, S.FAILED):
             self._check_limits(fz, mx, my)
-        handler = None if self.done else getattr(self, f"_{self.state.value}")
-        rebias = bool(handler(obs, fz, mx, my)) if handler is not None else False
+        rebias = not self.done and bool(getattr(self, f"_{self.state.value}")(obs, fz, mx, my))
         q = obs.q_cmd if self.done else self._command(obs)
         self.t_state += self.dt
         return Command(

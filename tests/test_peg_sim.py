@@ -43,3 +43,31 @@ def test_failure_reasons_are_counted_by_kind():
                 ("collision", "joint 2 residual 9.1 N·m over 6.0: protective stop")]
     assert failure_kind(*failures[1]) == "safety_stop_force"
     assert count_kinds(failures) == {"jammed": 2, "safety_stop_force": 1, "timeout": 1, "collision_detection": 1}
+
+
+def test_penetration_is_counted_on_walls_and_in_the_bore_apart_from_top_touches():
+    """A box sinks 0.5 mm into the floor, another 0.2 mm into a wall: the side and bore figures are the wall's,
+    and the bore's only where the contact is below the hole's mouth."""
+    import mujoco
+
+    from sim.plant import Penetration
+
+    def contacts(mouth_z: float) -> Penetration:
+        m = mujoco.MjModel.from_xml_string(f"""<mujoco><worldbody>
+          <geom name="floor" type="plane" size="1 1 .1"/>
+          <geom name="wall" type="box" pos="1 0 .5" size=".1 1 .5"/>
+          <site name="hole_top" pos="1 0 {mouth_z}"/>
+          <body pos="0 0 .0995"><freejoint/><geom type="box" size=".1 .1 .1"/></body>
+          <body pos=".8002 0 .5"><freejoint/><geom type="box" size=".1 .1 .1"/></body>
+        </worldbody></mujoco>""")
+        d = mujoco.MjData(m)
+        mujoco.mj_forward(m, d)
+        pen = Penetration()
+        pen.update(d, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "hole_top"))
+        return pen
+
+    deep = contacts(mouth_z=1.0)  # the wall contact is 0.5 m below the mouth: in the bore
+    assert deep.any == pytest.approx(0.5e-3, rel=1e-3)
+    assert deep.side == pytest.approx(0.2e-3, rel=1e-3) and deep.bore == deep.side
+    above = contacts(mouth_z=0.3)  # the same contact above the mouth: on the wall, not in the bore
+    assert above.side == pytest.approx(0.2e-3, rel=1e-3) and above.bore == 0.0
