@@ -134,7 +134,14 @@ def test_ctrl_c_in_a_terminal_stops_the_arm_and_keeps_the_recording(tmp_path):
                             # The runner may ignore SIGINT (a background job does); a terminal's
                             # process would not, so restore the default before exec.
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    time.sleep(6.0)
+    # Interrupt once the run is under way: its first log part is written after 250 control periods (a fixed
+    # sleep caught a loaded machine still starting, 12 periods in).
+    deadline = time.monotonic() + 90
+    while not any(tmp_path.rglob("part-00000.parquet")) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    if proc.poll() is not None:  # e.g. a real-time run stopped on a starved machine: say why
+        pytest.fail(f"the run ended (exit {proc.returncode}) before it could be interrupted: "
+                    f"{proc.communicate()[1][-1500:]}")
     os.killpg(proc.pid, signal.SIGINT)
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 130, err
