@@ -264,14 +264,17 @@ def run_impact(cfg: CellConfig, robot: RobotModel, model: LearnedModel, draw: Im
         holder.close()
     det = guard.last
     onset = obstacle.onset_t
-    latency = None
+    latency = force_at_detection = None
     if det is not None and onset is not None:
         latency = (t0 + det.t) - onset
+        force_at_detection = obstacle.force_at(t0 + det.t)
     return {"speed_mps": round(draw.speed, 3), "rigid": k is None, "stiffness_n_per_m": k,
             "payload_error_kg": round(draw.payload_error_kg, 3), "outcome": result.outcome,
             "contact": onset is not None, "detected": det is not None,
             "detected_before_contact": det is not None and (onset is None or t0 + det.t < onset),
             "latency_ms": None if latency is None else round(latency * 1e3, 1),
+            # The contact force when the detector decided: its sensitivity to this contact
+            "force_at_detection_n": None if force_at_detection is None else round(force_at_detection, 1),
             "peak_force_n": round(max(peak_at_stop, obstacle.peak_n), 1), "peak_until_stop_n": round(peak_at_stop, 1),
             "peak_after_stop_n": round(obstacle.peak_n, 1), "ft_peak_n": round(tap.peak, 1),
             "fast_peak_n": round(fast_peak, 1), "joints": det.joints if det else []}
@@ -366,6 +369,10 @@ def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wal
         vals = [t[key] for t in rows if t[key] is not None]
         return float(np.percentile(vals, 95)) if vals else None
 
+    def median(rows: list[dict[str, Any]], key: str) -> float | None:
+        vals = [t[key] for t in rows if t[key] is not None]
+        return float(np.median(vals)) if vals else None
+
     rigid = [t for t in hits if t["rigid"]]
     soft = [t for t in hits if not t["rigid"]]
     # Peak force per unit speed on the rigid plates: what guarded motion (cell/guarded.py) bounds speeds by.
@@ -380,6 +387,8 @@ def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wal
         "detection_latency_ms_median": float(np.median(lat)) if lat else None,
         "detection_latency_ms_p95_rigid": p95(rigid, "latency_ms"),
         "detection_latency_ms_p95_soft": p95(soft, "latency_ms"),
+        "force_at_detection_n_median_soft": median(soft, "force_at_detection_n"),
+        "force_at_detection_n_p95_soft": p95(soft, "force_at_detection_n"),
         "peak_force_n_p95": float(np.percentile(peaks, 95)) if peaks else None,
         "peak_force_n_p95_rigid": p95(rigid, "peak_force_n"),
         "peak_force_n_p95_soft": p95(soft, "peak_force_n"),

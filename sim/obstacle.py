@@ -4,6 +4,9 @@ periods)."""
 
 from __future__ import annotations
 
+import bisect
+import math
+
 import mujoco
 import numpy as np
 
@@ -68,6 +71,12 @@ class Obstacle:
     def reset_watch(self) -> None:
         self.onset_t: float | None = None
         self.peak_n = 0.0
+        self.trace: list[tuple[float, float]] = []  # (t, contact force [N]) of every physics step from the onset
+
+    def force_at(self, t: float) -> float | None:
+        """The contact force [N] at the last physics step at or before `t`, or None before the onset."""
+        i = bisect.bisect_right(self.trace, (t, math.inf)) - 1
+        return self.trace[i][1] if i >= 0 else None
 
     def touching(self) -> bool:
         """Whether the placed plate is in contact with anything now."""
@@ -87,9 +96,9 @@ class Obstacle:
         return float(np.linalg.norm(total))
 
     def _watch(self) -> None:
-        if self.plant.data.ncon == 0:
-            return
-        f = self.force()
+        f = self.force() if self.plant.data.ncon else 0.0
         if f > 0.5 and self.onset_t is None:
             self.onset_t = float(self.plant.data.time)
+        if self.onset_t is not None:
+            self.trace.append((float(self.plant.data.time), f))
         self.peak_n = max(self.peak_n, f)

@@ -316,12 +316,14 @@ def test_bench_collision_measures_impacts_and_free_motion(vs, model):
     out = bench_collision(vs["cfg"], vs["robot"], model, impacts=2, seed=3, free_s=4.0, tool="wipe")
     assert out["impacts"] == 2 and out["free_motion_s"] == pytest.approx(4.0, abs=0.1)
     for key in ("detection_latency_ms_p95", "peak_force_n_p95", "peak_force_n_max", "false_alarms",
-                "virtual_peak_ratio", "rigid_impact_n_per_mps_p95", "guarded_speed_mps_150n"):
+                "virtual_peak_ratio", "rigid_impact_n_per_mps_p95", "guarded_speed_mps_150n",
+                "force_at_detection_n_median_soft"):
         assert key in out
     for t in out["per_impact"]:
         if t["contact"]:
             assert t["peak_force_n"] > 0 and t["ft_peak_n"] > 0
             assert t["detected"], t
+            assert 0.0 <= t["force_at_detection_n"] <= t["peak_force_n"], t
 
 
 def test_over_a_wire_repeated_reads_are_skipped_and_thresholds_widen(vs, model):
