@@ -74,6 +74,7 @@ class PegConfig:
     # pushed on.  A slide that ended on the moment had climbed 0.2-0.35 mm; one that did not (the moment
     # already above block_moment_nm / 2 as the phase began) climbed on to 0.6 mm and 70-190 N.
     slide_climb_m: float = 0.00015
+    climb_return_speed_mps: float = 0.001  # after a climb, the reference's way back down (PegSearch.z_return)
     block_moment_nm: float = 1.0  # or the wall's push showing in (Mx, My) (above the Jacobian map's +-0.5 N·m
     # errors while sliding; the stall test below finds the wall first in most cases)
     # or the tip stalling: its speed along the move under this share of the commanded speed for
@@ -215,6 +216,7 @@ class PegConfig:
                      "max_approach_m", "inside_depth_m", "engage_depth_m", "probe_settle_s", "probe_average_s",
                      "backoff_m", "backoff_speed_mps", "search_step_m", "max_offset_m", "slide_lift_m",
                      "slide_speed_mps", "slide_fast_m", "slide_slow_speed_mps", "slide_block_m", "slide_climb_m",
+                     "climb_return_speed_mps",
                      "block_moment_nm", "max_slide_m", "chord_backoff_m", "chord_speed_mps", "chord_free_margin_m",
                      "min_probe_travel_m", "rotate_rate_dps", "rotate_max_force_n", "rotate_give_up_s",
                      "insert_speed_limit_mps", "free_insert_speed_mps", "centre_speed_mps", "entry_speed_mps",

@@ -421,3 +421,31 @@ def test_a_search_starts_by_moving_its_reference_to_the_tip_gradually(pcfg):
     assert steps.max() <= pcfg.backoff_speed_mps * dt + 1e-12
     assert np.allclose(path[-1][:2], tip.translation[:2])  # there, and then lifting off as before
     assert len(path) > 0.00079 / (pcfg.backoff_speed_mps * dt)
+
+
+def test_after_a_climb_the_reference_is_not_dropped_on_the_edge(pcfg):
+    # A move that ended on a climb left the tip above its reference; the next move takes the peg off the
+    # mouth's edge, and a reference left below would drop it by the whole climb within a period (a 99 N hit).
+    import pinocchio as pin
+
+    from tasks.peg_search import WallSearch
+
+    dt, climb = 0.008, 0.0002
+    search = WallSearch(pcfg, dt)
+    ref, tip = pin.SE3.Identity(), pin.SE3.Identity()
+    search.begin(ref, tip)
+    lead = np.array([1.0, 0.0, 0.0])
+    while search.phase == 0:
+        tip = ref.copy()
+        if search.slid > pcfg.slide_fast_m:
+            tip.translation[2] += climb
+        z_before = ref.translation[2]
+        search.step(ref, tip, lead, 0.0, 0.0)
+    assert ref.translation[2] == pytest.approx(tip.translation[2])  # the reference starts from the climbed tip
+    heights = []
+    for _ in range(100):
+        search.step(ref, ref.copy(), lead, 0.0, 0.0)
+        heights.append(ref.translation[2])
+    steps = np.diff([tip.translation[2], *heights])
+    assert np.all(steps <= 1e-15) and np.all(steps >= -pcfg.climb_return_speed_mps * dt - 1e-12)
+    assert heights[-1] == pytest.approx(z_before)  # then back at the slide's height
