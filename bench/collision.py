@@ -365,13 +365,10 @@ def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wal
     rigid_025 = [t["peak_force_n"] for t in hits if t["rigid"] and abs(t["speed_mps"] - 0.25) <= 0.05]
     minutes = free["seconds"] / 60.0
 
-    def p95(rows: list[dict[str, Any]], key: str) -> float | None:
+    def p95(rows: list[dict[str, Any]], key: str, q: float = 95.0) -> float | None:
+        """The q-th percentile of `key` over `rows` (95th unless told), None where none has it."""
         vals = [t[key] for t in rows if t[key] is not None]
-        return float(np.percentile(vals, 95)) if vals else None
-
-    def median(rows: list[dict[str, Any]], key: str) -> float | None:
-        vals = [t[key] for t in rows if t[key] is not None]
-        return float(np.median(vals)) if vals else None
+        return float(np.percentile(vals, q)) if vals else None
 
     rigid = [t for t in hits if t["rigid"]]
     soft = [t for t in hits if not t["rigid"]]
@@ -387,7 +384,7 @@ def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wal
         "detection_latency_ms_median": float(np.median(lat)) if lat else None,
         "detection_latency_ms_p95_rigid": p95(rigid, "latency_ms"),
         "detection_latency_ms_p95_soft": p95(soft, "latency_ms"),
-        "force_at_detection_n_median_soft": median(soft, "force_at_detection_n"),
+        "force_at_detection_n_median_soft": p95(soft, "force_at_detection_n", q=50.0),
         "force_at_detection_n_p95_soft": p95(soft, "force_at_detection_n"),
         "peak_force_n_p95": float(np.percentile(peaks, 95)) if peaks else None,
         "peak_force_n_p95_rigid": p95(rigid, "peak_force_n"),

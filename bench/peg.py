@@ -6,7 +6,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +23,7 @@ from cell.signals import raise_if_interrupted
 from drivers.interfaces import ArmState, Wrench
 from sim.cell import SimCell
 from sim.drivers import SimArm, SimForceSensor
-from sim.plant import Plant
+from sim.plant import Penetration, Plant
 from sim.profile import load_profile
 from tasks.base import SETUP_STATES
 from tasks.peg import PegInHoleTask
@@ -55,9 +55,7 @@ class Trial:
     axis_error_deg: float | None = None  # surveyed hole axis vs the fixture's true one
     index: int = 0  # the trial's number in the bench's sequence of draws
     recollided: int = 0  # physics steps the plant took again after a failed collision detection
-    max_penetration_m: float = 0.0  # the plant's deepest contact in any physics step
-    max_side_penetration_m: float = 0.0  # the same, of side contacts (on a wall, not a top face)
-    max_bore_penetration_m: float = 0.0  # the same, of side contacts in the bore (they widen the fit)
+    penetration: Penetration = field(default_factory=Penetration)  # the plant's deepest contacts
 
 
 class _Tap:
@@ -182,8 +180,8 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
         peak_state=meter.peak_state,
         probes=s["probes"], realignments=s["realignments"],
         abs_err=wrench_abs_errors(scored.states, np.array(scored.virtual), np.array(scored.measured)),
-        axis_error_deg=axis_err, index=index, recollided=plant.recollided, max_penetration_m=plant.penetration.any,
-        max_side_penetration_m=plant.penetration.side, max_bore_penetration_m=plant.penetration.bore,
+        axis_error_deg=axis_err, index=index, recollided=plant.recollided,
+        penetration=plant.penetration,
     )
 
 
@@ -214,6 +212,7 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
     err = np.concatenate([r.abs_err for r in results if r.abs_err.size]) if any(r.abs_err.size for r in results) \
         else np.zeros((0, 3))
     profile = load_profile(resolve(cfg.plant))
+    deepest = [r.penetration.as_um() for r in results]  # per trial
     return {
         "trials": len(results),
         "seed": seed,
@@ -240,17 +239,13 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
         "recollided_steps": sum(r.recollided for r in results),
         # The deepest contact of any physics step; of side contacts (on a wall or the mouth's edge); of side
         # contacts in the bore, whose give widens the fit (its clearance must be far larger)
-        "max_penetration_um": max((r.max_penetration_m * 1e6 for r in results), default=None),
-        "max_side_penetration_um": max((r.max_side_penetration_m * 1e6 for r in results), default=None),
-        "max_bore_penetration_um": max((r.max_bore_penetration_m * 1e6 for r in results), default=None),
+        **{key: max((um[key] for um in deepest), default=None) for key in Penetration().as_um()},
         "failure_kinds": count_kinds([(r.outcome, r.reason) for r in results if not r.success]),
         "per_trial": [{"trial": r.index, "success": r.success, "time_s": r.insertion_time_s,
                        "peak_force_n": round(r.peak_force_n, 1), "peak_state": r.peak_state,
                        "realignments": r.realignments, "probes": r.probes, "recollided_steps": r.recollided,
-                       "max_penetration_um": round(r.max_penetration_m * 1e6, 2),
-                       "max_side_penetration_um": round(r.max_side_penetration_m * 1e6, 2),
-                       "max_bore_penetration_um": round(r.max_bore_penetration_m * 1e6, 2)}
-                      for r in results],
+                       **{key: round(v, 2) for key, v in um.items()}}
+                      for r, um in zip(results, deepest, strict=True)],
         "failures": [{"trial": r.index, "kind": failure_kind(r.outcome, r.reason),
                       "offset_mm": np.round(np.array(r.offset_m) * 1e3, 3).tolist(),
                       "tilt_deg": list(r.tilt_deg), "outcome": r.outcome, "reason": r.reason,

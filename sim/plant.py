@@ -46,17 +46,22 @@ class Penetration:
         n = data.ncon
         if n == 0:
             return
-        depth = -data.contact.dist[:n]
-        self.any = max(self.any, float(depth.max()))
+        self.any = max(self.any, deepest_contact(data))
         side = np.abs(data.contact.frame[:n, 2]) < 0.5
         if not side.any():
             return
+        depth = -data.contact.dist[:n]
         self.side = max(self.side, float(depth[side].max()))
         if mouth_site >= 0:
             axis = data.site_xmat[mouth_site].reshape(3, 3)[:, 2]  # out of the hole
             below = (data.site_xpos[mouth_site] - data.contact.pos[:n]) @ axis > BORE_MARGIN_M
             if (side & below).any():
                 self.bore = max(self.bore, float(depth[side & below].max()))
+
+    def as_um(self) -> dict[str, float]:
+        """The three depths in micrometres, under the bench's keys."""
+        return {"max_penetration_um": self.any * 1e6, "max_side_penetration_um": self.side * 1e6,
+                "max_bore_penetration_um": self.bore * 1e6}
 
 
 def failed_contact(model: mujoco.MjModel, data: mujoco.MjData) -> str | None:

@@ -106,7 +106,8 @@ class WallSearch:
             return "searching"
         if self.z_return is not None:  # back down after a climb, slowly, while the next move goes on
             ref.translation[2] = max(self.z_return, ref.translation[2] - c.climb_return_speed_mps * self.dt)
-            self.z_return = None if ref.translation[2] <= self.z_return else self.z_return
+            if ref.translation[2] <= self.z_return:
+                self.z_return = None
         perp = np.array([-lead[1], lead[0], 0.0])
         # (direction, speed, distance for a fixed move or None to move until blocked, fast distance)
         # The way back across the chord is free as far as where its measurement started (the peg was there).
