@@ -31,7 +31,7 @@ from app.view import add_view_options
 from bench.figures import BENCH_DIR, FIGURES_PAGE
 from cell.cliargs import COUNT, NTHREAD, PORT, SEED, float_in, int_in, int_list
 from cell.config import CONFIG_DIR, REACTIONS, TOOLS
-from cell.signals import Terminated, received_sigterm, sigterm_as_interrupt
+from cell.control.signals import Terminated, received_sigterm, sigterm_as_interrupt
 from drivers.errors import CellError
 
 

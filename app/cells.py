@@ -8,8 +8,8 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from cell.config import CellConfig, SceneKind, resolve
-from cell.loop import OpenCell
-from cell.robot import RobotModel
+from cell.control.loop import OpenCell
+from cell.model.robot import RobotModel
 from drivers.errors import ConfigError
 
 
@@ -50,8 +50,8 @@ class RealCell:
                                          cfg.loop.period_s, f"{cfg.source}: devices")
 
     def open(self) -> OpenCell:
-        from cell.force import SensorForceSource
-        from cell.loop import WallTicker
+        from cell.control.loop import WallTicker
+        from cell.sensing.ft_source import SensorForceSource
 
         d = self.devices
         assert d.sensor is not None and d.sensor_cfg is not None
@@ -116,7 +116,7 @@ def _sim_calibration(cfg: CellConfig, tool: str, robot: RobotModel,
 def _real_calibration(cfg: CellConfig, tool: str, robot: RobotModel,
                       seed: int | None) -> tuple[Callable[[], Any], Callable[[Any], Any]]:
     """The real cell, loaded by the operator prompted here (never by the driver)."""
-    from tasks.calibrate import OperatorLoads
+    from tasks.setup.calibrate import OperatorLoads
 
     def real_opener() -> Any:
         return RealCell(cfg, robot)

@@ -14,7 +14,7 @@ from app.common import emit, load_cell_config, save_bench_summary
 from app.sensing import ensure_virtual_artefacts, make_force_source, with_guard
 from app.tasks_registry import robot_for
 from cell.config import load_config
-from cell.loop import OpenCell
+from cell.control.loop import OpenCell
 from drivers.errors import ConfigError
 
 log = logging.getLogger("tmcell")
@@ -74,7 +74,7 @@ class Bench:
 def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
     """Randomised insertions on the simulated cell with the force source `run` would use for the peg."""
     from bench.peg import bench_peg
-    from tasks.peg_config import load_peg_config
+    from tasks.peg.config import load_peg_config
 
     cfg = load_cell_config(args)
     robot = robot_for(cfg, "peg")
@@ -96,7 +96,7 @@ def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
         view = live_view(robot, f"bench-peg-trial-{(args.only or [0])[0]}", args.serve, args.force_source == "virtual")
     record = None
     if args.record:
-        from cell.recorder import new_run_dir
+        from cell.data.recorder import new_run_dir
 
         record = new_run_dir(Path(cfg.recording.directory), "bench-peg")
         log.info("recording every trial under %s", record)
@@ -131,7 +131,7 @@ def _bench_drivers(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _bench_model(args: argparse.Namespace) -> dict[str, Any]:
-    from tasks.lab_bench import bench_model
+    from tasks.lab.bench import bench_model
 
     if not args.data:
         raise ConfigError("bench model needs --data DATASET.yaml (make one with main.py collect)")
@@ -150,7 +150,7 @@ def _bench_faults(args: argparse.Namespace) -> dict[str, Any]:
 def _bench_collision(args: argparse.Namespace) -> dict[str, Any]:
     """Scripted impacts and free motion on the simulated cell, the peg tool's hybrid model detecting."""
     from bench.collision import bench_collision
-    from cell.virtual_sensor import load_observer_model
+    from cell.sensing.virtual_sensor import load_observer_model
 
     cfg = load_cell_config(args)
     robot = robot_for(cfg, "peg")

@@ -29,7 +29,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         view = live_view(robot, f"run-{args.task}", args.serve, args.force_source == "virtual")
     publisher = None
     if getattr(args, "publish", None):
-        from cell.publish import WrenchPublisher, parse_endpoint
+        from cell.view.publish import WrenchPublisher, parse_endpoint
 
         publisher = WrenchPublisher(parse_endpoint(args.publish), robot.n)
     sinks = [s for s in (view, publisher) if s is not None]
@@ -60,7 +60,7 @@ def _one_sink(sinks: list[Any]) -> Any:
     """The loop's row consumer: none, the one asked for, or both (the live view and the publisher)."""
     if len(sinks) <= 1:
         return sinks[0] if sinks else None
-    from cell.publish import RowSinks
+    from cell.view.publish import RowSinks
 
     return RowSinks(sinks)
 

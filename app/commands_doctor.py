@@ -34,7 +34,7 @@ def add_doctor_parser(sub: Any) -> None:
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
-    from tasks.doctor import Doctor, DoctorSettings, report
+    from tasks.setup.doctor import Doctor, DoctorSettings, report
 
     cfg = load_config(args.config)
     robot = robot_for(cfg, "wipe")

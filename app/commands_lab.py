@@ -24,7 +24,7 @@ def cmd_prepare(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from tasks.calibrate import calibrate
+    from tasks.setup.calibrate import calibrate
 
     cfg = load_cell_config(args)
     robot = robot_for(cfg, args.tool)
@@ -43,7 +43,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     out = calibrate(cfg, args.tool, robot, opener, applier, Path(args.model) if args.model else None,
                     Path(args.out) if args.out else None, cell_identity(cfg, args.cell, args.seed))
     # The tool's weight on the F/T sensor, from 9 static wrist postures about home (free space, unloaded).
-    from tasks.tool_gravity import identify_tool_gravity
+    from tasks.setup.weigh_tool import identify_tool_gravity
 
     out["tool_gravity"] = identify_tool_gravity(
         cfg, args.tool, robot, opener,
@@ -53,8 +53,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_collect(args: argparse.Namespace) -> int:
-    from tasks.lab_collect import collect
-    from tasks.lab_robot import lab_robot
+    from tasks.lab.collect import collect
+    from tasks.lab.robot import lab_robot
 
     cfg = load_cell_config(args)
     robot = lab_robot(cfg)
@@ -72,7 +72,7 @@ def cmd_collect(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from tasks.lab_train import train
+    from tasks.lab.train import train
 
     out = train(load_cell_config(args), Path(args.data), Path(args.out), kind=args.model, samples=args.samples,
                 window=args.window, grouping=args.grouping, derivatives=args.derivatives,
@@ -82,7 +82,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from tasks.lab_evaluate import DEFAULT_CURVE, evaluate
+    from tasks.lab.evaluate import DEFAULT_CURVE, evaluate
 
     curve = None if args.no_curve else args.curve if args.curve else DEFAULT_CURVE
     out = evaluate(load_cell_config(args), Path(args.data), Path(args.out), train_samples=args.train_samples,
@@ -94,7 +94,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_import(args: argparse.Namespace) -> int:
-    from tasks.import_ur10e import import_ur10e
+    from tasks.lab.import_ur10e import import_ur10e
 
     out = import_ur10e(Path(args.out), train=args.train, test=args.test, loaded=args.loaded,
                        max_gap_s=args.max_gap_s, payload_kg=args.payload_kg)

@@ -15,7 +15,7 @@ from app.common import emit, save_bench_summary
 from app.sensing import PREPARE_SAMPLES, run_prepare, with_guard
 from app.tasks_registry import robot_for
 from cell.config import CellConfig, load_config
-from cell.robot import RobotModel
+from cell.model.robot import RobotModel
 from drivers.errors import ConfigError
 
 log = logging.getLogger("tmcell")
@@ -26,8 +26,8 @@ def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[
     """The torque predictor the planner uses, its name and the part toppra takes as its constraint:
     a saved model artefact, or the nominal rigid body (P1)."""
     if path:
-        from cell.dynamics.artefact import load_model  # the model lab's artefacts
-        from cell.planner import toppra_terms
+        from cell.model.dynamics.artefact import load_model  # the model lab's artefacts
+        from cell.planning.planner import toppra_terms
 
         model = load_model(Path(path), robot)
         return model.predict, f"{model.meta.kind} ({path})", toppra_terms(model)
@@ -57,8 +57,8 @@ def prepared_model(cfg: CellConfig, kind: str) -> str:
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
-    from cell.collision import CollisionChecker
-    from tasks.plan import load_plan_file, parse_waypoints, run_plans
+    from cell.collision.geometry import CollisionChecker
+    from tasks.setup.plan import load_plan_file, parse_waypoints, run_plans
 
     cfg = load_config(args.config)
     plan_file = load_plan_file(args.plans)

@@ -47,10 +47,10 @@ def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
     and the simulated cell (guarded unless --no-guard) to execute each plan on."""
     from app.commands_plan import NOMINAL, prepared_model, torque_model
     from bench.planning import PlanningSetup, bench_planning
-    from cell.collision import CollisionChecker
-    from cell.planner import TimedTrajectory
-    from cell.ppo_planner import PpoSettings
-    from tasks.plan import execute, load_plan_file, measured_peak
+    from cell.collision.geometry import CollisionChecker
+    from cell.planning.planner import TimedTrajectory
+    from cell.planning.ppo_planner import PpoSettings
+    from tasks.setup.plan import execute, load_plan_file, measured_peak
 
     cfg = load_cell_config(args)
     plan_file = load_plan_file(PLANS)

@@ -13,7 +13,7 @@ from drivers.errors import ConfigError
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from tasks.replay import read_run, replay
+    from tasks.setup.replay import read_run, replay
 
     run_dir = Path(args.run_dir)
     summary, _ = read_run(run_dir)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from app.common import emit, load_cell_config
 from cell.cliargs import COUNT, NTHREAD, int_in
-from cell.dynamics.learned import LEARNERS
+from cell.model.dynamics.learned import LEARNERS
 from drivers.errors import ConfigError
 
 
@@ -54,7 +54,7 @@ def add_learner_parsers(sub: argparse._SubParsersAction, common: Callable[[argpa
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
-    from tasks.lab_tune import tune
+    from tasks.lab.tune import tune
 
     if args.storage and "://" not in args.storage and Path(args.storage).is_dir():
         raise ConfigError(f"--storage {args.storage}: a folder; give a journal file path or a database URL")

@@ -10,7 +10,7 @@ from typing import Any
 
 from bench.figures import save_summary, summary_name
 from cell.config import CellConfig, load_config
-from cell.configio import dumps_strict
+from drivers.configio import dumps_strict
 
 log = logging.getLogger("tmcell")
 

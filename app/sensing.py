@@ -11,8 +11,8 @@ import numpy as np
 from app.cells import calibration_cells, cell_identity, check_plant, is_simulated
 from app.tasks_registry import robot_for, working_posture
 from cell.config import CellConfig
-from cell.loop import OpenCell
-from cell.robot import RobotModel
+from cell.control.loop import OpenCell
+from cell.model.robot import RobotModel
 from drivers.errors import ConfigError
 
 log = logging.getLogger("tmcell")
@@ -30,7 +30,7 @@ def make_force_source(cfg: CellConfig, source: str, tool: str, cell: OpenCell, r
         return cell
     if source != "virtual":
         raise ConfigError(f"--force-source {source}: unknown (virtual or sensor)")
-    from cell.virtual_sensor import build_virtual_source
+    from cell.sensing.virtual_sensor import build_virtual_source
 
     virtual = build_virtual_source(cfg.virtual_sensor, robot, tool, cfg.loop.period_s)
     log.info("force source: virtual sensor (%s) for the %s tool; the F/T sensor is logged as ground truth",
@@ -41,7 +41,7 @@ def make_force_source(cfg: CellConfig, source: str, tool: str, cell: OpenCell, r
 def with_tool_gravity(cfg: CellConfig, tool: str, cell: OpenCell, robot: RobotModel) -> OpenCell:
     """The F/T sensor less the tool's weight when `calibrate` identified it (`tool_gravity.json` in the tool's
     calibration folder): it then reads the contact alone in any pose, not only in the pose of its tare."""
-    from cell.tool_gravity import FILE, GravityCompensatedSource, load
+    from cell.sensing.tool_gravity import FILE, GravityCompensatedSource, load
 
     folder = cfg.virtual_sensor.for_tool(tool).path("calibration", tool)
     if not (folder / FILE).exists():
@@ -66,8 +66,8 @@ def with_guard(cfg: CellConfig, tool: str, cell: OpenCell, robot: RobotModel) ->
         log.warning("collision detection off for this run: no model for the %s tool at %s (main.py prepare --tool %s)",
                     tool, model_dir, tool)
         return cell
-    from cell.contact_guard import build_guard
-    from cell.virtual_sensor import load_observer_model
+    from cell.collision.guard import build_guard
+    from cell.sensing.virtual_sensor import load_observer_model
 
     model = load_observer_model(model_dir, robot)
     point = np.asarray(cfg.virtual_sensor.wrench_point, float)
@@ -81,7 +81,7 @@ def with_guard(cfg: CellConfig, tool: str, cell: OpenCell, robot: RobotModel) ->
 
 def run_prepare(cfg: CellConfig, tool: str, kind: str, seed: int | None, samples: int, force: bool) -> dict[str, Any]:
     """Collect, train the causal H1 and calibrate for `tool` on a `kind` cell (each step skipped when done)."""
-    from tasks.calibrate import prepare
+    from tasks.setup.calibrate import prepare
 
     robot = robot_for(cfg, tool)
     check_plant(cfg, kind, seed, tool)
@@ -94,7 +94,7 @@ def ensure_virtual_artefacts(cfg: CellConfig, tool: str, kind: str, robot: Robot
                              seed: int | None = None) -> None:
     """The tool's model and calibration must be present and match: built on the spot for a simulated
     or emulated cell (same plant, logged), refused with the command to run for the real one."""
-    from tasks.calibrate import artefacts_missing
+    from tasks.setup.calibrate import artefacts_missing
 
     why = artefacts_missing(cfg, robot, tool)
     simulated = is_simulated(kind)
@@ -114,7 +114,7 @@ def ensure_virtual_artefacts(cfg: CellConfig, tool: str, kind: str, robot: Robot
 
 
 def _warn_other_plant(cfg: CellConfig, tool: str, seed: int | None) -> None:
-    from cell.virtual_sensor import read_calibration_doc
+    from cell.sensing.virtual_sensor import read_calibration_doc
 
     made = read_calibration_doc(cfg.virtual_sensor.path("calibration", tool)).get("cell", {})
     here = cell_identity(cfg, "sim", seed)

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 
 from cell.config import CellConfig, SceneKind, check_home, check_task_force, resolve
-from cell.guarded import check_speeds
-from cell.robot import RobotModel, load_robot
+from cell.control.guarded import check_speeds
+from cell.model.robot import RobotModel, load_robot
 from drivers.errors import ConfigError
 
 SWEEP_LIFT_M = 0.1  # the sweeps' centre: the task's start lifted this far (the collection keeps off the table)
@@ -42,7 +42,7 @@ def _build_wipe(cfg: CellConfig, robot: RobotModel, section: str, force_source: 
 
 
 def peg_head_on_speeds(p: Any) -> dict[str, float]:
-    """The peg's speeds toward a face it may meet head-on (cell/guarded.py), wedges in the bore included.
+    """The peg's speeds toward a face it may meet head-on (cell/control/guarded.py), wedges in the bore included.
     Not bounded: the survey's moves between touch points (above the nominal face by more than its tilt
     allows), and the free feed deeper than a peg can wedge (mu x D, `wedge_friction`), where the walls
     are sliding contacts."""
@@ -52,8 +52,8 @@ def peg_head_on_speeds(p: Any) -> dict[str, float]:
 
 
 def _build_peg(cfg: CellConfig, robot: RobotModel, section: str, force_source: str) -> tuple[Any, float]:
-    from tasks.peg import PegInHoleTask
-    from tasks.peg_config import load_peg_config
+    from tasks.peg.config import load_peg_config
+    from tasks.peg.task import PegInHoleTask
 
     where = f"{cfg.source}: tasks.{section}"
     pcfg = load_peg_config(cfg.tasks.get(section), where, force_source)

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from cell.robot import RobotModel
+from cell.model.robot import RobotModel
 
 log = logging.getLogger("tmcell")
 
@@ -23,7 +23,7 @@ def add_view_options(sp: Any, what: str) -> None:
 
 def live_view(robot: RobotModel, name: str, serve: bool, virtual_in_loop: bool) -> Any:
     """A RunView streaming to a spawned viewer or to a served web viewer."""
-    from cell.rerun_view import BackgroundView, RunView, open_viewer
+    from cell.view.rerun_view import BackgroundView, RunView, open_viewer
 
     return BackgroundView(RunView(open_viewer(name, serve), robot, virtual_in_loop))
 
@@ -50,8 +50,8 @@ def view_replay(run_dir: Path, robot: RobotModel, estimates: np.ndarray, label: 
     """The recorded run in the viewer with the replayed virtual wrench beside it (`wrench/replay/*`)."""
     import rerun as rr
 
-    from cell.recorder import read_log
-    from cell.rerun_view import AXES, TIMELINE, RunView, log_table, open_viewer
+    from cell.data.recorder import read_log
+    from cell.view.rerun_view import AXES, TIMELINE, RunView, log_table, open_viewer
 
     table = read_log(run_dir)
     view = RunView(open_viewer(f"replay-{Path(run_dir).name}", serve), robot, virtual_in_loop)

@@ -8,8 +8,8 @@ import mujoco
 import numpy as np
 
 from cell.config import CellConfig, resolve
-from cell.robot import load_robot
-from cell.trajectory import JointMove
+from cell.control.trajectory import JointMove
+from cell.model.robot import load_robot
 from sim.cell import make_plant
 
 # "Ordinary motions": random point-to-point moves inside this workspace restriction (the paper's

@@ -15,16 +15,16 @@ import pinocchio as pin
 from tqdm import tqdm
 
 from bench.collision_plans import max_tcp_speed, time_optimal_stream
+from cell.collision.guard import build_guard
 from cell.config import CellConfig, CollisionConfig, TaskContactSafety
-from cell.contact_guard import build_guard
-from cell.dynamics.learned import LearnedModel
-from cell.excitation.config import ExcitationConfig
-from cell.excitation.moves import random_moves
-from cell.force import SensorForceSource
-from cell.loop import Command, ControlLoop, Observation, OpenCell
-from cell.robot import RobotModel
-from cell.safety import SafetyMonitor
-from cell.signals import raise_if_interrupted
+from cell.control.loop import Command, ControlLoop, Observation, OpenCell
+from cell.control.safety import SafetyMonitor
+from cell.control.signals import raise_if_interrupted
+from cell.data.excitation.config import ExcitationConfig
+from cell.data.excitation.moves import random_moves
+from cell.model.dynamics.learned import LearnedModel
+from cell.model.robot import RobotModel
+from cell.sensing.ft_source import SensorForceSource
 from drivers.interfaces import ArmState, Wrench
 from sim.cell import make_sim_cell
 from sim.mjcf import OBSTACLE_PLATE_KG
@@ -372,7 +372,7 @@ def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wal
 
     rigid = [t for t in hits if t["rigid"]]
     soft = [t for t in hits if not t["rigid"]]
-    # Peak force per unit speed on the rigid plates: what guarded motion (cell/guarded.py) bounds speeds by.
+    # Peak force per unit speed on the rigid plates: what guarded motion (cell/control/guarded.py) bounds speeds by.
     per_speed = [t["peak_force_n"] / t["speed_mps"] for t in rigid]
     impact = float(np.percentile(per_speed, 95)) if per_speed else None
     return {

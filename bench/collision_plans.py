@@ -9,12 +9,12 @@ import logging
 import numpy as np
 
 from cell.config import CONFIG_DIR, CellConfig
-from cell.dynamics.learned import LearnedModel
-from cell.excitation.config import ExcitationConfig
-from cell.excitation.moves import random_moves
-from cell.planner import PlanningError, ToppraPlanner, toppra_terms
-from cell.robot import RobotModel
-from tasks.plan import load_plan_file
+from cell.data.excitation.config import ExcitationConfig
+from cell.data.excitation.moves import random_moves
+from cell.model.dynamics.learned import LearnedModel
+from cell.model.robot import RobotModel
+from cell.planning.planner import PlanningError, ToppraPlanner, toppra_terms
+from tasks.setup.plan import load_plan_file
 
 REST_S = 0.25  # at rest between moves: each move starts from standstill, the hardest start
 log = logging.getLogger(__name__)

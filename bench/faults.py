@@ -15,11 +15,11 @@ from typing import Any
 import numpy as np
 
 from cell.config import CellConfig
-from cell.loop import Command, ControlLoop, Observation
-from cell.recorder import Recorder, read_log
-from cell.robot import RobotModel
-from cell.safety import SafetyMonitor
-from cell.signals import raise_if_interrupted
+from cell.control.loop import Command, ControlLoop, Observation
+from cell.control.safety import SafetyMonitor
+from cell.control.signals import raise_if_interrupted
+from cell.data.recorder import Recorder, read_log
+from cell.model.robot import RobotModel
 from drivers.interfaces import Lifecycle
 
 log = logging.getLogger(__name__)

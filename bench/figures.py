@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from cell.configio import dumps_strict
+from drivers.configio import dumps_strict
 from drivers.errors import DataError
 
 # Where `main.py bench ...` and `main.py run ...` save their summaries (relative to the working folder, as

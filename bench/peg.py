@@ -15,20 +15,20 @@ import numpy as np
 
 from bench.peg_failures import count_kinds, failure_kind
 from cell.config import CellConfig, resolve
-from cell.loop import ControlLoop, Observation, OpenCell
-from cell.recorder import Recorder
-from cell.robot import RobotModel
-from cell.safety import SafetyMonitor
-from cell.signals import raise_if_interrupted
+from cell.control.loop import ControlLoop, Observation, OpenCell
+from cell.control.safety import SafetyMonitor
+from cell.control.signals import raise_if_interrupted
+from cell.data.recorder import Recorder
+from cell.model.robot import RobotModel
 from drivers.interfaces import ArmState, Wrench
 from sim.cell import SimCell
 from sim.drivers import SimArm, SimForceSensor
 from sim.plant import Penetration, Plant
 from sim.profile import load_profile
 from tasks.base import SETUP_STATES
-from tasks.peg import PegInHoleTask
-from tasks.peg_config import PegConfig
-from tasks.peg_scoring import wrench_abs_errors
+from tasks.peg.config import PegConfig
+from tasks.peg.scoring import wrench_abs_errors
+from tasks.peg.task import PegInHoleTask
 
 log = logging.getLogger(__name__)
 
@@ -258,8 +258,8 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
 def _write_trial_rrd(record_dir: Path, robot: RobotModel, force_source: str, summary: dict[str, Any]) -> None:
     """A recorded trial's Rerun copy beside its step log, as `run` keeps one."""
     try:
-        from cell.recorder import read_log
-        from cell.rerun_view import write_rrd
+        from cell.data.recorder import read_log
+        from cell.view.rerun_view import write_rrd
 
         write_rrd(record_dir, read_log(record_dir), robot, {**summary, "force_source": force_source})
     except Exception as exc:  # the Rerun copy must never lose the trial's result

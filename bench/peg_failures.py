@@ -5,7 +5,7 @@ from __future__ import annotations
 import collections
 
 # (kind, words that name it in a trial's outcome or reason), first match wins; the reasons are the task's
-# (tasks/peg.py fail_because), the control loop's (timeout, safety stop) and the collision guard's.
+# (tasks/peg/task.py fail_because), the control loop's (timeout, safety stop) and the collision guard's.
 KINDS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("collision_detection", ("collision",)),
     ("timeout", ("timeout", "did not finish")),

@@ -1,7 +1,7 @@
 """`main.py bench planning`: four planners on the named and on random collision-free paths, each plan run on the plant.
 
-Planners (cell/planner.py, cell/ppo_planner.py): `uniform` (the pendant knob: a trapezoid scaled until the
-model's torques fit), `kinematic` (TOPP-RA with speed and acceleration limits only, the accelerations
+Planners (cell/planning/planner.py, cell/planning/ppo_planner.py): `uniform` (the pendant knob: a trapezoid
+scaled until the model's torques fit), `kinematic` (TOPP-RA with speed and acceleration limits only, the accelerations
 calibrated once per arm on the plant: bench/planning_calibration.py), `ppo` (the paper's method: a PPO
 policy trained on the hybrid model), `model` (ours: TOPP-RA under the hybrid model's torque limits).
 Each planner has one setting per arm, calibrated on the plant on one reference set of paths (the named
@@ -22,8 +22,9 @@ from typing import Any
 import numpy as np
 
 from bench.planning_calibration import calibrate, calibrate_trust, load_or_calibrate
-from cell.collision import CollisionChecker
-from cell.planner import (
+from cell.collision.geometry import CollisionChecker
+from cell.model.robot import RobotModel
+from cell.planning.planner import (
     GeometricPath,
     KinematicPlanner,
     Planner,
@@ -35,9 +36,8 @@ from cell.planner import (
     TorqueFn,
     UniformScalingPlanner,
 )
-from cell.ppo_planner import PpoPlanner, PpoSettings, load_or_train
-from cell.robot import RobotModel
-from cell.speed_env import random_waypoints
+from cell.planning.ppo_planner import PpoPlanner, PpoSettings, load_or_train
+from cell.planning.speed_env import random_waypoints
 
 log = logging.getLogger(__name__)
 PLANNER_NAMES = ("uniform", "kinematic", "ppo", "model")

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from cell.planner import KinematicPlanner, Planner, PlanningError, TimedTrajectory
-from cell.robot import RobotModel
+from cell.model.robot import RobotModel
+from cell.planning.planner import KinematicPlanner, Planner, PlanningError, TimedTrajectory
 
 log = logging.getLogger(__name__)
 Run = Callable[[TimedTrajectory], dict[str, Any]]  # execute on the plant -> {"outcome", "peak_ratio", ...}

@@ -10,15 +10,15 @@ from typing import Any
 import numpy as np
 
 from cell.config import CellConfig, resolve
-from cell.loop import ControlLoop
-from cell.robot import load_robot
-from cell.safety import SafetyMonitor
+from cell.control.loop import ControlLoop
+from cell.control.safety import SafetyMonitor
+from cell.model.robot import load_robot
 from drivers.interfaces import JointLimits
-from drivers.tm5_contract import TM5ModbusConfig
-from drivers.tm5_modbus import TM5ModbusArm
-from drivers.tm5_registers import N_JOINTS
-from drivers.wacoh import WacohSensor
-from drivers.wacoh_config import WacohConfig
+from drivers.tm5.contract import TM5ModbusConfig
+from drivers.tm5.modbus import TM5ModbusArm
+from drivers.tm5.registers import N_JOINTS
+from drivers.wacoh.config import WacohConfig
+from drivers.wacoh.driver import WacohSensor
 from sim.cell import make_sim_cell
 from sim.kinematic_plant import KinematicPlant
 from sim.tm5_emulator import TM5Emulator

@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 
 from cell.config import CellConfig
-from cell.robot import RobotModel
-from cell.tool_gravity import fit, gravity_direction
+from cell.model.robot import RobotModel
+from cell.sensing.tool_gravity import fit, gravity_direction
 from sim.cell import make_plant
 
 log = logging.getLogger(__name__)

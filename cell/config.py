@@ -6,8 +6,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
-from cell.configio import join, load_dataclass, read_yaml, require, require_len
-from cell.guarded import GuardedSettings
+from cell.control.guarded import GuardedSettings
+from drivers.configio import join, load_dataclass, read_yaml, require, require_len
 from drivers.errors import ConfigError
 
 TOOLS = ("wipe", "peg")  # the tools a cell config knows (virtual_sensor.by_tool keys)
@@ -216,7 +216,7 @@ class VirtualSensorConfig:
     # differ from the ones here; `for_tool` merges them.
     by_tool: dict[str, ToolSensorSettings] = field(default_factory=dict)
     # jacobian: (J^T)^+ tau_ext | learned: the paper's XGBoost Fz, Mx, My | contact: (J^T)^+ with the
-    # prior that the tool is touched at its TCP (cell/wrench_map.py ContactMap)
+    # prior that the tool is touched at its TCP (cell/sensing/wrench_map.py ContactMap)
     mapping: Literal["jacobian", "learned", "contact"] = "jacobian"
     data_dir: str = "artifacts/data/{tool}"
     model_dir: str = "artifacts/models/{tool}"
@@ -230,7 +230,7 @@ class VirtualSensorConfig:
     innovation_gate: float = 3.0
     # The Kalman filter's measurement noise: "calibrated", the calibration's free-motion residual
     # variance per joint (constant); "model", that variance raised each period to the hybrid model's
-    # own uncertainty there (cell/dynamics/uncertainty.py: wider at speeds it fits worse, outside its
+    # own uncertainty there (cell/model/dynamics/uncertainty.py: wider at speeds it fits worse, outside its
     # training coverage and, where it models a sticking regime, within the static friction band).
     measurement_noise: Literal["calibrated", "model"] = "calibrated"
     # 1/s, bandwidth of the momentum observer's first-order response (it has no gate: at 25/s a joint
@@ -282,7 +282,7 @@ GUARDED_TASKS = ("wipe", "peg-in-hole", "play")  # task names (their `name`) the
 
 @dataclass
 class DetectorSettings:
-    """The collision detector's numbers (cell/contact_detector.py explains the threshold)."""
+    """The collision detector's numbers (cell/collision/detector.py explains the threshold)."""
 
     observer_gain: float = 100.0  # 1/s: bandwidth of the residual (time constant 1 / gain)
     sigma_factor: float = 6.0  # thresholds: this many model sigmas ...
@@ -335,7 +335,7 @@ class TaskContactSafety:
 
 @dataclass
 class CollisionConfig:
-    """Collision detection and reaction (cell/contact_guard.py): on in every task and plain move."""
+    """Collision detection and reaction (cell/collision/guard.py): on in every task and plain move."""
 
     enabled: bool = True
     detector: DetectorSettings = field(default_factory=DetectorSettings)
@@ -345,7 +345,8 @@ class CollisionConfig:
     comply_time_s: float = 0.5  # comply: yield to the contact force this long, then stop
     comply_admittance: float = 0.002  # m/s per N of contact force (capped at retract_speed_mps)
     tasks: dict[str, TaskContactSafety] = field(default_factory=dict)
-    guarded: GuardedSettings = field(default_factory=GuardedSettings)  # the tasks' head-on speeds (cell/guarded.py)
+    # The tasks' head-on speeds (cell/control/guarded.py).
+    guarded: GuardedSettings = field(default_factory=GuardedSettings)
 
     def validate(self, where: str) -> None:
         require(0 < self.retract_m <= 0.1, f"{where}.retract_m", "must lie in (0, 0.1] m")

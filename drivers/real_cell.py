@@ -8,10 +8,10 @@ from typing import Any
 
 from drivers.errors import DriverError
 from drivers.interfaces import JointLimits
-from drivers.tm5_contract import TM5ModbusConfig
-from drivers.tm5_modbus import TM5ModbusArm
-from drivers.wacoh import WacohSensor
-from drivers.wacoh_config import WacohConfig
+from drivers.tm5.contract import TM5ModbusConfig
+from drivers.tm5.modbus import TM5ModbusArm
+from drivers.wacoh.config import WacohConfig
+from drivers.wacoh.driver import WacohSensor
 
 
 @dataclass

@@ -7,8 +7,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from cell.config import TOOLS, CellConfig, SceneKind, resolve
-from cell.force import SensorForceSource
-from cell.loop import OpenCell
+from cell.control.loop import OpenCell
+from cell.sensing.ft_source import SensorForceSource
 from drivers.errors import ConfigError
 from drivers.interfaces import JointLimits
 from sim.drivers import LockstepTicker, PacedTicker, SimArm, SimForceSensor

@@ -74,7 +74,7 @@ class PacedTicker:
     """Advances the plant one period per cycle and sleeps to the wall clock: the sim at real speed."""
 
     def __init__(self, plant: Plant) -> None:
-        from cell.loop import WallTicker
+        from cell.control.loop import WallTicker
 
         self.plant = plant
         self.wall = WallTicker(plant.dt)

@@ -23,14 +23,14 @@ from pathlib import Path
 from typing import Any
 
 from cell.config import CellConfig, SceneKind, resolve
-from cell.force import SensorForceSource
-from cell.loop import OpenCell, WallTicker
+from cell.control.loop import OpenCell, WallTicker
+from cell.sensing.ft_source import SensorForceSource
 from drivers.errors import ConfigError, DriverError, LinkLostError
 from drivers.interfaces import JointLimits
-from drivers.tm5_contract import TM5ModbusConfig, UserAreaLayout
-from drivers.tm5_modbus import TM5ModbusArm
-from drivers.wacoh import WacohSensor
-from drivers.wacoh_config import WacohConfig
+from drivers.tm5.contract import TM5ModbusConfig, UserAreaLayout
+from drivers.tm5.modbus import TM5ModbusArm
+from drivers.wacoh.config import WacohConfig
+from drivers.wacoh.driver import WacohSensor
 
 log = logging.getLogger(__name__)
 

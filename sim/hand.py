@@ -1,6 +1,6 @@
 """A scripted hand for the simulated cell: random wrenches at the tool while the arm rests in a posture.
 
-It implements the calibration's load-applier interface (`tasks.calibrate.LoadApplier`): each load is
+It implements the calibration's load-applier interface (`tasks.setup.calibrate.LoadApplier`): each load is
 ramped in over `ramp_s` (a hand does not hit the tool as a step), then held until the next one.  The
 plant applies `Plant.external_wrench` (world frame, on the tool at the TCP) every physics step; the
 hand sets it from a tool-frame wrench the *tool exerts on the hand*, the cell's sensor convention, so

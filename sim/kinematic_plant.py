@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from drivers.interfaces import ArmState, ArmStatus
-from drivers.tm5_registers import rpy_to_matrix
+from drivers.tm5.registers import rpy_to_matrix
 
 
 class KinematicPlant:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from cell.configio import join, load_dataclass, read_yaml, require, require_len
+from drivers.configio import join, load_dataclass, read_yaml, require, require_len
 
 LINKS = ("link_1", "link_2", "link_3", "link_4", "link_5", "link_6")
 

@@ -21,8 +21,8 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.errors import ConfigError
 from drivers.interfaces import ArmState
-from drivers.tm5_contract import UserAreaLayout
-from drivers.tm5_registers import (
+from drivers.tm5.contract import UserAreaLayout
+from drivers.tm5.registers import (
     COIL_PLAY_PAUSE,
     COIL_STOP,
     DI_COUNT,

@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers.interfaces import ArmState
-from drivers.tm5_contract import UserAreaLayout
-from drivers.tm5_registers import (
+from drivers.tm5.contract import UserAreaLayout
+from drivers.tm5.registers import (
     USER_AREA_FIRST,
     Command,
     RobotFlags,

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.wacoh_codec import (
+from drivers.wacoh.codec import (
     N_CHANNELS,
     RAW_MAX,
     RAW_ZERO,

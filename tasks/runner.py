@@ -10,13 +10,13 @@ from typing import Any
 import numpy as np
 
 from cell.config import CellConfig
-from cell.configio import to_plain
-from cell.loop import ControlLoop, ForceSource, OpenCell, Task
-from cell.recorder import Recorder, new_run_dir, read_log
-from cell.report import plot_force_run
-from cell.robot import RobotModel
-from cell.safety import SafetyMonitor
-from cell.signals import interrupts_deferred
+from cell.control.loop import ControlLoop, ForceSource, OpenCell, Task
+from cell.control.safety import SafetyMonitor
+from cell.control.signals import interrupts_deferred
+from cell.data.recorder import Recorder, new_run_dir, read_log
+from cell.model.robot import RobotModel
+from cell.view.report import plot_force_run
+from drivers.configio import to_plain
 from drivers.interfaces import ArmState, Wrench
 from tasks.base import SETUP_STATES
 
@@ -183,7 +183,7 @@ def run_task(
 def _write_rrd(run_dir: Path, robot: RobotModel, summary: dict[str, Any]) -> None:
     """The step log's Rerun copy beside it (`recording.rrd`), named in the summary."""
     try:
-        from cell.rerun_view import write_rrd
+        from cell.view.rerun_view import write_rrd
 
         summary["rerun"] = str(write_rrd(run_dir, read_log(run_dir), robot, summary))
     except Exception as exc:  # the Rerun copy must never lose the recording or the summary

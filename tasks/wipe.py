@@ -9,11 +9,11 @@ from typing import Any
 
 import numpy as np
 
-from cell.configio import load_dataclass, require
-from cell.impedance import DiscreteImpedance, ImpedanceParams
-from cell.loop import Command, Observation
-from cell.robot import RobotModel
-from cell.trajectory import JointMove, PathProfile, tool_down_pose
+from cell.control.impedance import DiscreteImpedance, ImpedanceParams
+from cell.control.loop import Command, Observation
+from cell.control.trajectory import JointMove, PathProfile, tool_down_pose
+from cell.model.robot import RobotModel
+from drivers.configio import load_dataclass, require
 from tasks.base import MachineTask, Trigger
 
 log = logging.getLogger(__name__)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cell.config import CellConfig, load_config, resolve
-from cell.robot import RobotModel, load_robot
+from cell.model.robot import RobotModel, load_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 

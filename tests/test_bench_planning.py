@@ -9,7 +9,7 @@ import pytest
 
 from bench.planning import PLANNER_NAMES, summarise
 from bench.planning_calibration import calibrate
-from cell.planner import KinematicPlanner, PlannerConfig
+from cell.planning.planner import KinematicPlanner, PlannerConfig
 from main import main
 
 PATH = np.radians([[0, -30, 90, 0, 90, 0], [60, 10, 60, -30, 90, 30], [120, 30, 30, 0, 90, 0]])

@@ -14,11 +14,11 @@ import yaml
 from app.cells import calibration_cells
 from app.tasks_registry import robot_for
 from cell.config import CONFIG_DIR, load_config
-from cell.recorder import read_log
-from cell.virtual_sensor import build_virtual_source
+from cell.data.recorder import read_log
+from cell.sensing.virtual_sensor import build_virtual_source
 from drivers.errors import ConfigError, DataError
 from main import main
-from tasks.calibrate import LoadApplier, OperatorLoads, artefacts_missing, calibrate, error_split, prepare
+from tasks.setup.calibrate import LoadApplier, OperatorLoads, artefacts_missing, calibrate, error_split, prepare
 from tests.vsfixtures import artefacts
 
 

@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from cell.config import CONFIG_DIR
-from cell.recorder import read_log
+from cell.data.recorder import read_log
 from main import main
 
 

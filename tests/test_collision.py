@@ -9,13 +9,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from cell.collision.guard import build_guard
 from cell.config import CONFIG_DIR, CollisionConfig, DetectorSettings, TaskContactSafety
-from cell.configio import load_dataclass
-from cell.contact_guard import build_guard
-from cell.loop import Command, ControlLoop, Observation
-from cell.recorder import Recorder, read_log
-from cell.safety import SafetyMonitor
-from cell.virtual_sensor import load_observer_model
+from cell.control.loop import Command, ControlLoop, Observation
+from cell.control.safety import SafetyMonitor
+from cell.data.recorder import Recorder, read_log
+from cell.sensing.virtual_sensor import load_observer_model
+from drivers.configio import load_dataclass
 from drivers.errors import ConfigError, SafetyStopError
 from drivers.interfaces import ArmState
 from tests.vsfixtures import artefacts
@@ -80,7 +80,7 @@ class PushTask:
 
 
 def _posture(robot, home, xyz):
-    from cell.trajectory import tool_down_pose
+    from cell.control.trajectory import tool_down_pose
 
     q, ok = robot.ik(tool_down_pose(np.asarray(xyz, float)), home)
     assert ok
@@ -190,9 +190,9 @@ def test_commanded_acceleration_widens_the_inertial_term_and_a_cruise_adds_nothi
 def test_a_time_optimal_plan_starting_at_full_acceleration_is_not_a_collision(vs, model):
     """`main.py plan`'s trajectory_3: toppra accelerates joints 3-5 from rest at 20-45 rad/s^2 within a
     few periods, while the measured acceleration's estimate still reads a fraction of it."""
-    from cell.planner import ToppraPlanner, toppra_terms
+    from cell.planning.planner import ToppraPlanner, toppra_terms
     from sim.cell import make_sim_cell
-    from tasks.plan import execute, load_plan_file
+    from tasks.setup.plan import execute, load_plan_file
 
     cfg, robot = vs["cfg"], vs["robot"]
     plans = load_plan_file(CONFIG_DIR / "plans.yaml")
@@ -351,7 +351,7 @@ def test_over_a_wire_repeated_reads_are_skipped_and_thresholds_widen(vs, model):
 # ----------------------------------------------------------------------------------------- guarded motion
 def test_guarded_speed_bound_and_the_tasks_head_on_speeds(vs):
     from app.tasks_registry import build_task
-    from cell.guarded import GuardedSettings, check_speeds
+    from cell.control.guarded import GuardedSettings, check_speeds
 
     g = GuardedSettings(impact_n_per_mps=10_000.0)
     assert g.speed_bound(80.0) == pytest.approx(0.008)
@@ -376,8 +376,8 @@ def test_bad_guarded_settings_are_one_line_errors():
 
 def test_the_pegs_head_on_speeds_and_its_feed_while_it_can_wedge(vs):
     from app.tasks_registry import build_task, peg_head_on_speeds
-    from cell.guarded import GuardedSettings
-    from tasks.peg_config import PegConfig
+    from cell.control.guarded import GuardedSettings
+    from tasks.peg.config import PegConfig
 
     cfg = vs["cfg"]
     peg = PegConfig()

@@ -10,10 +10,10 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from cell.dataset import Trajectory, load_split, load_trajectories, write_trajectory
-from cell.derivatives import CausalDerivatives, FilterConfig, zero_phase_derivatives
-from cell.recorder import Recorder
-from cell.samples import stack, subsample_segments
+from cell.data.dataset import Trajectory, load_split, load_trajectories, write_trajectory
+from cell.data.recorder import Recorder
+from cell.data.samples import stack, subsample_segments
+from cell.sensing.derivatives import CausalDerivatives, FilterConfig, zero_phase_derivatives
 from drivers.errors import ConfigError, DataError
 
 DT = 0.008

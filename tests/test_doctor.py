@@ -9,7 +9,7 @@ import pytest
 
 from drivers.errors import DriverError
 from main import main
-from tasks.doctor import Doctor, DoctorSettings, report
+from tasks.setup.doctor import Doctor, DoctorSettings, report
 
 CHECKS = ["arm_reachable", "modbus_connect", "register_map", "robot_program_heartbeat", "estop_and_errors",
           "sensor_port", "sensor_sensitivities", "sensor_tare_stability", "sensor_line", "control_step_timing"]

@@ -17,10 +17,10 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from cell.dynamics.consistency import is_consistent, params_from_theta, pseudo_inertia, theta_from_params
-from cell.dynamics.friction import EXTRA_TERMS, term_names
-from cell.dynamics.physics import IdentificationConfig, P1Model, P2Model, P2Params, identify_p2
-from cell.robots import load_robot_spec, robot_model
+from cell.model.dynamics.consistency import is_consistent, params_from_theta, pseudo_inertia, theta_from_params
+from cell.model.dynamics.friction import EXTRA_TERMS, term_names
+from cell.model.dynamics.physics import IdentificationConfig, P1Model, P2Model, P2Params, identify_p2
+from cell.model.specs import load_robot_spec, robot_model
 from drivers.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]

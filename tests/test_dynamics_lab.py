@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import yaml
 
-from cell.dataset import load_split
-from cell.dynamics.artefact import load_model
-from cell.dynamics.learned import LearnedModel
-from tasks.lab_bench import bench_model
-from tasks.lab_collect import collect
-from tasks.lab_evaluate import evaluate
-from tasks.lab_robot import lab_robot
-from tasks.lab_train import train
+from cell.data.dataset import load_split
+from cell.model.dynamics.artefact import load_model
+from cell.model.dynamics.learned import LearnedModel
+from tasks.lab.bench import bench_model
+from tasks.lab.collect import collect
+from tasks.lab.evaluate import evaluate
+from tasks.lab.robot import lab_robot
+from tasks.lab.train import train
 
 
 @pytest.fixture(scope="module")

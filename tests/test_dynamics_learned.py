@@ -11,10 +11,11 @@ import pinocchio as pin
 import pytest
 import xgboost as xgb
 
-from cell.dynamics.artefact import load_model, save_model
-from cell.dynamics.base import TorqueModel
-from cell.dynamics.fastpredict import FastPredictor, FlatForest
-from cell.dynamics.features import (
+from cell.data.samples import Samples
+from cell.model.dynamics.artefact import load_model, save_model
+from cell.model.dynamics.base import TorqueModel
+from cell.model.dynamics.fastpredict import FastPredictor, FlatForest
+from cell.model.dynamics.features import (
     FeatureSpec,
     WindowBuffer,
     derived,
@@ -24,9 +25,8 @@ from cell.dynamics.features import (
     history_index,
     state_matrix,
 )
-from cell.dynamics.learned import LearnedModel, XGBParams, fit_learned
-from cell.dynamics.physics import identify_p2
-from cell.samples import Samples
+from cell.model.dynamics.learned import LearnedModel, XGBParams, fit_learned
+from cell.model.dynamics.physics import identify_p2
 from drivers.errors import DataError
 
 SMALL = XGBParams(n_estimators=60, max_depth=5, learning_rate=0.2, nthread=2, early_stopping_rounds=10)
@@ -35,7 +35,7 @@ SMALL = XGBParams(n_estimators=60, max_depth=5, learning_rate=0.2, nthread=2, ea
 @pytest.fixture(scope="module")
 def robot_module():
     from cell.config import load_config, resolve
-    from cell.robot import load_robot
+    from cell.model.robot import load_robot
 
     cfg = load_config()
     return load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
@@ -227,7 +227,7 @@ def test_artefact_round_trip_keeps_predictions(robot_module, fitted, tmp_path):
 
 
 def test_artefact_from_another_robot_is_refused(robot_module, fitted, tmp_path):
-    from cell.robot import load_robot
+    from cell.model.robot import load_robot
 
     s, p2, h1, d = fitted
     save_model(h1, tmp_path / "h1")
@@ -259,7 +259,7 @@ def test_damaged_artefact_gives_a_clear_error(robot_module, fitted, tmp_path):
 
 def test_served_step_runs_the_same_causal_pipeline_as_training(fitted):
     """`FastPredictor.step(q, dq)` = causal derivatives + model, exactly as features built offline."""
-    from cell.derivatives import CausalDerivatives
+    from cell.sensing.derivatives import CausalDerivatives
 
     s, p2, h1, d = fitted
     test = motion(300, 31, trajs=1)

@@ -6,9 +6,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from cell.dynamics.artefact import load_model, save_model
-from cell.dynamics.base import TorqueModel
-from cell.dynamics.physics import (
+from cell.model.dynamics.artefact import load_model, save_model
+from cell.model.dynamics.base import TorqueModel
+from cell.model.dynamics.physics import (
     IdentificationConfig,
     P1Model,
     P2Model,
@@ -57,7 +57,7 @@ def true_model(robot_module):
 @pytest.fixture(scope="module")
 def robot_module():
     from cell.config import load_config, resolve
-    from cell.robot import load_robot
+    from cell.model.robot import load_robot
 
     cfg = load_config()
     return load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)

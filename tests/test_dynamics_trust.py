@@ -1,4 +1,4 @@
-"""Hybrids' trust and uncertainty (cell/dynamics/uncertainty.py): the coverage grid, the sticking regime,
+"""Hybrids' trust and uncertainty (cell/model/dynamics/uncertainty.py): the coverage grid, the sticking regime,
 residual levels by speed; H1 blending toward P2 where unsure (batch, artefact, served path) and the
 Kalman observer taking the model's uncertainty as its measurement noise."""
 
@@ -10,14 +10,14 @@ import json
 import numpy as np
 import pytest
 
-from cell.dynamics.artefact import load_model, save_model
-from cell.dynamics.fastpredict import FastPredictor
-from cell.dynamics.learned import LearnedModel, XGBParams
-from cell.dynamics.uncertainty import SPEED_EDGES, Coverage, CoverageConfig
-from cell.observer import KalmanObserver
-from cell.samples import Samples
+from cell.data.samples import Samples
+from cell.model.dynamics.artefact import load_model, save_model
+from cell.model.dynamics.fastpredict import FastPredictor
+from cell.model.dynamics.learned import LearnedModel, XGBParams
+from cell.model.dynamics.uncertainty import SPEED_EDGES, Coverage, CoverageConfig
+from cell.sensing.observer import KalmanObserver
 from drivers.interfaces import ArmState
-from tasks.lab_train import TrainOptions, fit_model
+from tasks.lab.train import TrainOptions, fit_model
 from tests.test_dynamics_learned import fit_h1, motion
 
 # One thread: on a 2-core machine busy with another job, XGBoost's two threads spin against it (30 s vs 0.2 s).
@@ -166,7 +166,7 @@ def test_coverage_dict_round_trip_and_inconsistent_shapes():
 @pytest.fixture(scope="module")
 def robot_module():
     from cell.config import load_config, resolve
-    from cell.robot import load_robot
+    from cell.model.robot import load_robot
 
     cfg = load_config()
     return load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)

@@ -7,9 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from cell.loop import ControlLoop
-from cell.recorder import Recorder, read_log
-from cell.safety import SafetyMonitor
+from cell.control.loop import ControlLoop
+from cell.control.safety import SafetyMonitor
+from cell.data.recorder import Recorder, read_log
 from drivers.interfaces import Lifecycle
 from sim.emulated import EmulatedCell
 from tests.test_lifecycle_and_safety import Scripted

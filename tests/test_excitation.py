@@ -9,17 +9,17 @@ import numpy as np
 import pytest
 import yaml
 
-from cell.configio import load_dataclass
-from cell.excitation.chain import digitised_configurations, eulerian_chain, free_configurations, paper_chain
-from cell.excitation.config import ExcitationConfig, FourierConfig
-from cell.excitation.fourier import fourier_excitation
-from cell.excitation.limits import CollisionChecker, Workspace, check_plan
-from cell.excitation.moves import path_clear, random_moves, transfer
-from cell.excitation.sweep import sweep_excitation
-from cell.loop import Observation
+from cell.control.loop import Observation
+from cell.data.excitation.chain import digitised_configurations, eulerian_chain, free_configurations, paper_chain
+from cell.data.excitation.config import ExcitationConfig, FourierConfig
+from cell.data.excitation.fourier import fourier_excitation
+from cell.data.excitation.limits import CollisionChecker, Workspace, check_plan
+from cell.data.excitation.moves import path_clear, random_moves, transfer
+from cell.data.excitation.sweep import sweep_excitation
+from drivers.configio import load_dataclass
 from drivers.errors import ConfigError
 from drivers.interfaces import ArmState, Wrench
-from tasks.collect import PlaybackTask
+from tasks.lab.playback import PlaybackTask
 
 DT = 0.008
 SMALL = ExcitationConfig(steps=[2, 2, 2, 2, 2, 2], speeds=[0.5, 1.0], max_configs=5,
@@ -191,7 +191,7 @@ def test_playback_task_moves_to_start_plays_every_sample_and_labels_rows(robot, 
 
 
 def test_training_plan_adds_sweeps_around_the_given_posture(robot, cfg):
-    from tasks.lab_collect import training_plan
+    from tasks.lab.collect import training_plan
 
     centre = np.array(cfg.robot.home, float) + np.array([0.3, 0.2, -0.3, 0.1, 0.0, 0.2])
     plan = training_plan(robot, cfg, SMALL, DT, 3000, "fourier", sweep_share=0.5, sweep_centre=centre)
@@ -207,7 +207,7 @@ def test_training_plan_adds_sweeps_around_the_given_posture(robot, cfg):
 @pytest.mark.parametrize("tool", ["wipe", "peg"])
 def test_each_tools_working_posture_is_free_and_above_its_task_start(cfg, tool):
     from app.tasks_registry import SWEEP_LIFT_M, TASK_TOOLS, build_task, robot_for, working_posture
-    from tasks.lab_robot import lab_robot
+    from tasks.lab.robot import lab_robot
 
     robot = robot_for(cfg, tool)
     q = working_posture(cfg, tool, robot)

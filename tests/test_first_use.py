@@ -62,7 +62,7 @@ def test_plan_on_the_nominal_model_needs_nothing_prepared(monkeypatch, cell):
         seen["model"] = model_name
         return {"plans": 0}
 
-    monkeypatch.setattr("tasks.plan.run_plans", fake_run_plans)
+    monkeypatch.setattr("tasks.setup.plan.run_plans", fake_run_plans)
     monkeypatch.setattr("app.commands_plan.run_prepare", lambda *a, **k: pytest.fail("prepare was asked for"))
     assert main(["-q", "plan", "--model", "nominal", "--cell", cell]) == 0
     assert seen["model"].startswith("P1")

@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cell.config import DEFAULT_CONFIG, load_config
-from cell.dataset import load_split, load_trajectories
+from cell.data.dataset import load_split, load_trajectories
 from drivers.errors import CellError, ConfigError, DataError
 from main import main
 
@@ -128,10 +128,10 @@ def test_a_manifest_cannot_point_into_system_trees(tmp_path, entry):
 def test_a_booster_name_outside_the_artefact_is_refused(tmp_path, robot):
     import json
 
-    from cell.dynamics.artefact import load_model, save_model
-    from cell.dynamics.features import FeatureSpec
-    from cell.dynamics.learned import XGBParams, fit_learned
-    from cell.dynamics.physics import nominal_p2
+    from cell.model.dynamics.artefact import load_model, save_model
+    from cell.model.dynamics.features import FeatureSpec
+    from cell.model.dynamics.learned import XGBParams, fit_learned
+    from cell.model.dynamics.physics import nominal_p2
     from tests.test_dynamics_learned import motion
 
     s = motion(600, 0)

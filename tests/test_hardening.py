@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from cell.config import DEFAULT_CONFIG, load_config
-from cell.configio import read_yaml
-from cell.signals import Terminated, interrupts_deferred, raise_if_interrupted, sigterm_as_interrupt
+from cell.control.signals import Terminated, interrupts_deferred, raise_if_interrupted, sigterm_as_interrupt
+from drivers.configio import read_yaml
 from drivers.errors import ConfigError
 from main import main
 
@@ -237,7 +237,7 @@ def test_a_session_that_never_armed_does_not_command_a_stop_on_disconnect():
 def test_runs_starting_in_the_same_second_each_get_their_own_folder(tmp_path):
     from concurrent.futures import ThreadPoolExecutor
 
-    from cell.recorder import new_run_dir
+    from cell.data.recorder import new_run_dir
 
     with ThreadPoolExecutor(8) as pool:
         dirs = list(pool.map(lambda _: new_run_dir(tmp_path / "runs", "wipe"), range(60)))
@@ -257,7 +257,7 @@ def test_an_unwritable_recording_folder_is_a_one_line_error(tmp_path, capsys):
 def test_a_recording_that_cannot_be_written_is_a_recording_error(tmp_path, monkeypatch):
     import pyarrow.parquet as pq
 
-    from cell.recorder import Recorder
+    from cell.data.recorder import Recorder
     from drivers.errors import RecordingError
 
     def full_disk(*args, **kwargs):

@@ -6,8 +6,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from cell.impedance import CartesianImpedance, DiscreteImpedance, ImpedanceParams
-from cell.recorder import Recorder, new_run_dir, read_log
+from cell.control.impedance import CartesianImpedance, DiscreteImpedance, ImpedanceParams
+from cell.data.recorder import Recorder, new_run_dir, read_log
 
 
 def test_law_is_equation_24():
@@ -40,7 +40,7 @@ def test_joint_space_law_acts_per_joint():
 
 
 def test_cartesian_direction_moves_the_tcp_along_it(robot, home):
-    from cell.trajectory import tool_down_pose
+    from cell.control.trajectory import tool_down_pose
 
     q, _ = robot.ik(tool_down_pose(np.array([0.45, -0.1, 0.2])), home)
     imp = CartesianImpedance(robot, ImpedanceParams(m=0.0, b=1.0, k_tau=1e-3), 0.008, np.array([0, 0, -1.0]))

@@ -12,12 +12,12 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from cell.dataset import load_split, load_trajectories
-from cell.robots import load_robot_spec
+from cell.data.dataset import load_split, load_trajectories
+from cell.model.specs import load_robot_spec
 from drivers.errors import ConfigError, DataError
 from main import main
-from tasks import import_ur10e as imp
-from tasks.lab_evaluate import evaluate
+from tasks.lab import import_ur10e as imp
+from tasks.lab.evaluate import evaluate
 
 GAINS = np.asarray(load_robot_spec("ur10e").torque_constants)
 
@@ -99,7 +99,7 @@ def test_torque_is_current_times_gain_and_speeds_are_kept(tmp_path, logs):
 
 
 def test_malformed_rows_are_dropped_counted_and_warned_once(tmp_path, logs, caplog):
-    with caplog.at_level(logging.WARNING, logger="tasks.import_ur10e"):
+    with caplog.at_level(logging.WARNING, logger="tasks.lab.import_ur10e"):
         out, summary = run_import(tmp_path, logs)
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1, warnings  # only the malformed file warns, once

@@ -13,21 +13,21 @@ import yaml
 
 import main
 from cell.config import load_config
-from cell.dataset import Trajectory, write_trajectory
-from cell.dynamics.artefact import load_model, save_model
-from cell.dynamics.fastpredict import FastPredictor
-from cell.dynamics.features import FeatureSpec
-from cell.dynamics.learned import LearnedModel
-from cell.dynamics.nets import NetLearner, NetParams
-from cell.dynamics.physics import P1Model, nominal_p2
-from cell.robot import RobotModel
-from cell.samples import Samples, stack
+from cell.data.dataset import Trajectory, write_trajectory
+from cell.data.samples import Samples, stack
+from cell.model.dynamics.artefact import load_model, save_model
+from cell.model.dynamics.fastpredict import FastPredictor
+from cell.model.dynamics.features import FeatureSpec
+from cell.model.dynamics.learned import LearnedModel
+from cell.model.dynamics.nets import NetLearner, NetParams
+from cell.model.dynamics.physics import P1Model, nominal_p2
+from cell.model.robot import RobotModel
 from drivers.errors import ConfigError, DataError
-from tasks.lab_evaluate import evaluate
-from tasks.lab_robot import lab_robot
-from tasks.lab_train import TrainOptions, fit_model
-from tasks.lab_tune import chunk_segments, split_validation, tune
-from tasks.tune_space import load_space
+from tasks.lab.evaluate import evaluate
+from tasks.lab.robot import lab_robot
+from tasks.lab.train import TrainOptions, fit_model
+from tasks.lab.tune import chunk_segments, split_validation, tune
+from tasks.lab.tune_space import load_space
 
 DT = 0.008
 TINY = NetParams(hidden=12, layers=2, epochs=12, patience=12, batch_size=128, learning_rate=1e-2)

@@ -15,7 +15,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from cell.robots import load_robot_spec, robot_model
+from cell.model.specs import load_robot_spec, robot_model
 from main import main
 
 SPEC = load_robot_spec("ur10e")

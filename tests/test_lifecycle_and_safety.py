@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cell.loop import Command, ControlLoop, Observation
-from cell.recorder import Recorder, read_log
-from cell.safety import SafetyMonitor
+from cell.control.loop import Command, ControlLoop, Observation
+from cell.control.safety import SafetyMonitor
+from cell.data.recorder import Recorder, read_log
 from drivers.errors import CommandRejectedError, LifecycleError, SafetyStopError
 from drivers.interfaces import ArmState, Lifecycle, Wrench
 from sim.cell import make_sim_cell

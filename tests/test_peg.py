@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from drivers.errors import ConfigError
-from tasks.peg_config import PegConfig, load_peg_config
-from tasks.peg_contact import Contact, classify
-from tasks.peg_geometry import rim_points
-from tasks.peg_scoring import wrench_errors
-from tasks.peg_touch import GuardedDescent
+from tasks.peg.config import PegConfig, load_peg_config
+from tasks.peg.contact import Contact, classify
+from tasks.peg.geometry import rim_points
+from tasks.peg.scoring import wrench_errors
+from tasks.peg.touch import GuardedDescent
 
 
 @pytest.fixture
@@ -57,7 +57,7 @@ class TestContactStates:
         # Peg tilted 10 deg: its rim's lowest and highest points are r sin(10 deg) below / above the centre.
         import pinocchio as pin
 
-        from cell.trajectory import TOOL_DOWN
+        from cell.control.trajectory import TOOL_DOWN
 
         pose = pin.SE3(pin.exp3(np.array([0.0, 1.0, 0.0]) * np.radians(10)) @ TOOL_DOWN, np.array([0.1, 0.2, 0.3]))
         low, high = rim_points(pose, 0.0107)
@@ -169,7 +169,7 @@ def test_the_surveyed_face_defines_the_hole_frame(cfg):
     import pinocchio as pin
 
     from app.tasks_registry import robot_for
-    from tasks.peg import PegInHoleTask
+    from tasks.peg.task import PegInHoleTask
 
     robot = robot_for(cfg, "peg")
     centre = np.array([*cfg.scene.hole_center, cfg.scene.table_height])
@@ -187,7 +187,7 @@ def test_the_surveyed_face_defines_the_hole_frame(cfg):
 
 def test_a_face_tilted_beyond_the_limit_fails_by_name(cfg):
     from app.tasks_registry import robot_for
-    from tasks.peg import PegInHoleTask
+    from tasks.peg.task import PegInHoleTask
 
     robot = robot_for(cfg, "peg")
     centre = np.array([*cfg.scene.hole_center, cfg.scene.table_height])
@@ -202,7 +202,7 @@ def test_a_face_tilted_beyond_the_limit_fails_by_name(cfg):
 def _bare_task(cfg, pc: PegConfig | None = None):
     """A peg task on the default cell, driven by hand (no loop): for its single steps."""
     from app.tasks_registry import robot_for
-    from tasks.peg import PegInHoleTask
+    from tasks.peg.task import PegInHoleTask
 
     return PegInHoleTask(pc or PegConfig(), robot_for(cfg, "peg"), np.asarray(cfg.scene.hole_center),
                          cfg.scene.table_height, cfg.loop.period_s, np.asarray(cfg.robot.home, float))
@@ -289,7 +289,7 @@ def test_bench_runs_one_trial_again_and_records_it(capsys):
     import json
     from pathlib import Path
 
-    from cell.recorder import read_log
+    from cell.data.recorder import read_log
     from main import main
 
     code = main(["-q", "bench", "peg-in-hole", "--trials", "3", "--only", "1", "--seed", "2", "--record",
@@ -327,7 +327,7 @@ def test_run_peg_in_hole_records_states_wrench_depth_and_a_plot(capsys):
     import json
     from pathlib import Path
 
-    from cell.recorder import read_log
+    from cell.data.recorder import read_log
     from main import main
 
     code = main(["-q", "run", "peg-in-hole", "--force-source", "sensor", "--json"])
@@ -377,7 +377,7 @@ def test_a_search_move_carried_up_the_mouths_edge_has_met_the_wall(pcfg, climb_m
     # lead edge rides up the mouth's edge): past slide_climb_m above its reference, the move has met it.
     import pinocchio as pin
 
-    from tasks.peg_search import WallSearch
+    from tasks.peg.search import WallSearch
 
     dt = 0.008
     search = WallSearch(pcfg, dt)
@@ -404,7 +404,7 @@ def test_a_search_starts_by_moving_its_reference_to_the_tip_gradually(pcfg):
     # period swung joint 1 past its torque limit.  It travels at the lift's speed instead.
     import pinocchio as pin
 
-    from tasks.peg_search import WallSearch
+    from tasks.peg.search import WallSearch
 
     dt = 0.008
     search = WallSearch(pcfg, dt)
@@ -428,7 +428,7 @@ def test_after_a_climb_the_reference_is_not_dropped_on_the_edge(pcfg):
     # mouth's edge, and a reference left below would drop it by the whole climb within a period (a 99 N hit).
     import pinocchio as pin
 
-    from tasks.peg_search import WallSearch
+    from tasks.peg.search import WallSearch
 
     dt, climb = 0.008, 0.0002
     search = WallSearch(pcfg, dt)

@@ -8,8 +8,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from tasks.peg_bore import BoreCentring, arc_span, fit_circle
-from tasks.peg_config import PegConfig, load_peg_config
+from tasks.peg.bore import BoreCentring, arc_span, fit_circle
+from tasks.peg.config import PegConfig, load_peg_config
 
 DT = 0.008
 RC = 0.00005  # radial clearance of the 21.7 mm peg in the 21.8 mm bore

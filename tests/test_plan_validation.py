@@ -9,7 +9,7 @@ import numpy as np
 
 from cell.config import CONFIG_DIR
 from sim.cell import make_sim_cell
-from tasks.plan import load_plan_file, plan_and_validate
+from tasks.setup.plan import load_plan_file, plan_and_validate
 
 
 def test_an_under_predicting_model_is_corrected_by_the_measured_torques(cfg, robot):

@@ -7,8 +7,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cell.collision import CollisionChecker
-from cell.planner import GeometricPath, PlannerConfig, PlanningError, ToppraPlanner, ToppraTerms, UniformScalingPlanner
+from cell.collision.geometry import CollisionChecker
+from cell.planning.planner import (
+    GeometricPath,
+    PlannerConfig,
+    PlanningError,
+    ToppraPlanner,
+    ToppraTerms,
+    UniformScalingPlanner,
+)
 from drivers.errors import ConfigError
 
 PATH = np.radians([[0, -30, 90, 0, 90, 0], [60, 10, 60, -30, 90, 30], [120, 30, 30, 0, 90, 0]])

@@ -6,10 +6,17 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from cell.planner import GeometricPath, KinematicPlanner, Planner, PlannerConfig, TimedTrajectory, ToppraPlanner
-from cell.ppo import PPOConfig, load_policy, save_policy
-from cell.ppo_planner import PpoPlanner, PpoSettings, train_policy
-from cell.speed_env import EnvConfig, PathSpeedEnv, SpeedEnvBatch, obs_dim, path_data, random_waypoints
+from cell.planning.planner import (
+    GeometricPath,
+    KinematicPlanner,
+    Planner,
+    PlannerConfig,
+    TimedTrajectory,
+    ToppraPlanner,
+)
+from cell.planning.ppo import PPOConfig, load_policy, save_policy
+from cell.planning.ppo_planner import PpoPlanner, PpoSettings, train_policy
+from cell.planning.speed_env import EnvConfig, PathSpeedEnv, SpeedEnvBatch, obs_dim, path_data, random_waypoints
 from drivers.errors import ConfigError
 
 PATH = np.radians([[0, -30, 90, 0, 90, 0], [60, 10, 60, -30, 90, 30], [120, 30, 30, 0, 90, 0]])
@@ -117,7 +124,7 @@ def test_the_ppo_planner_keeps_the_protocol_and_every_limit(robot, p1, tiny_sett
 
 
 def test_a_stored_policy_loads_and_a_mismatched_one_is_refused(tmp_path):
-    from cell.ppo import init_params
+    from cell.planning.ppo import init_params
 
     params = init_params(np.random.default_rng(0), 10, 16, -0.5)
     save_policy(tmp_path, params, {"model": "x"})

@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 
 from cell.config import SceneConfig, resolve
-from cell.trajectory import tool_down_pose
+from cell.control.trajectory import tool_down_pose
 from sim.mjcf import PAD_MASS
 from sim.plant import Plant
 from sim.profile import LINKS, PlantProfile, load_profile
@@ -219,7 +219,7 @@ def test_a_step_with_a_contact_deeper_than_any_real_one_is_taken_again_precisely
     # the plant takes such a step again from the state before it with a tight CCD tolerance.  A peg
     # started 3 mm inside the fixture's face stands in for the failure here (real contacts stay within
     # 0.05 mm; the bound is MAX_CONTACT_DEPTH_M, 0.1 mm).
-    from cell.robot import load_robot
+    from cell.model.robot import load_robot
     from sim import plant as plant_mod
 
     profile = load_profile(resolve(cfg.plant))

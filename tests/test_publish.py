@@ -8,7 +8,7 @@ import socket
 
 import pytest
 
-from cell.publish import WrenchPublisher, parse_endpoint
+from cell.view.publish import WrenchPublisher, parse_endpoint
 from drivers.errors import ConfigError
 from main import main
 

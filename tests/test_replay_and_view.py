@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from cell.config import CONFIG_DIR
-from cell.recorder import read_log
+from cell.data.recorder import read_log
 from main import main
 from tests.vsfixtures import artefacts
 
@@ -119,7 +119,7 @@ def test_write_rrd_of_a_tiny_log(tmp_path, robot):
     import pyarrow as pa
     from rerun.chunk import RrdReader
 
-    from cell.rerun_view import write_rrd
+    from cell.view.rerun_view import write_rrd
 
     rows = {"t": [0.0, 0.008], "state": ["approach", "press"], "fz_setpoint": [0.0, 60.0]}
     for i in range(robot.n):

@@ -57,7 +57,7 @@ def test_j2_j3_j4_axes_are_parallel(bare):
 
 
 def test_ik_reaches_a_tool_down_pose(robot, home):
-    from cell.trajectory import tool_down_pose
+    from cell.control.trajectory import tool_down_pose
 
     target = tool_down_pose(np.array([0.45, -0.1, 0.12]))
     q, ok = robot.ik(target, home)

@@ -1,4 +1,4 @@
-"""Robots by name (`config/robots/<name>/robot.yaml`, `cell.robots`) and the lab's `--robot`."""
+"""Robots by name (`config/robots/<name>/robot.yaml`, `cell.model.specs`) and the lab's `--robot`."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import yaml
 
-from cell.robots import ROBOTS_DIR, available_robots, load_robot_spec, robot_model
+from cell.model.specs import ROBOTS_DIR, available_robots, load_robot_spec, robot_model
 from drivers.errors import ConfigError
 from main import main
-from tasks.lab_collect import collect
-from tasks.lab_robot import lab_robot
+from tasks.lab.collect import collect
+from tasks.lab.robot import lab_robot
 
 
 def test_both_robots_load_from_their_folders():

@@ -1,4 +1,4 @@
-"""Strict JSON reports (cell/configio.py finite_json, dumps_strict): no NaN or Infinity in the text, ever."""
+"""Strict JSON reports (drivers/configio.py finite_json, dumps_strict): no NaN or Infinity in the text, ever."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cell.configio import dumps_strict, finite_json
+from drivers.configio import dumps_strict, finite_json
 
 
 def strict_loads(text: str):

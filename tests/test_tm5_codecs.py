@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 from pymodbus.client import ModbusTcpClient
 
 from drivers.errors import ConfigError
-from drivers.tm5_contract import FIELD_WIDTH, TM5ModbusConfig, UserAreaLayout
-from drivers.tm5_registers import (
+from drivers.tm5.contract import FIELD_WIDTH, TM5ModbusConfig, UserAreaLayout
+from drivers.tm5.registers import (
     counter_delta,
     float32_to_regs,
     floats_to_regs,

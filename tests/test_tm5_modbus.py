@@ -10,7 +10,7 @@ from pymodbus.client import ModbusTcpClient
 
 from drivers.errors import LifecycleError, StaleDataError
 from drivers.interfaces import ArmStatus, Lifecycle
-from drivers.tm5_modbus import TM5ModbusArm
+from drivers.tm5.modbus import TM5ModbusArm
 from sim.tm5_emulator import TM5Emulator
 from tests.tm5_fixtures import DT, Q0, FakePlant, make_arm, wait_for
 

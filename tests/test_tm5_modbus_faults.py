@@ -12,9 +12,9 @@ from pymodbus.constants import ExcCodes
 
 from drivers.errors import DriverError, LifecycleError, LinkLostError, ProtocolError, StaleDataError
 from drivers.interfaces import Lifecycle
-from drivers.tm5_contract import TM5ModbusConfig
-from drivers.tm5_modbus import TM5ModbusArm
-from drivers.tm5_registers import RobotFlags
+from drivers.tm5.contract import TM5ModbusConfig
+from drivers.tm5.modbus import TM5ModbusArm
+from drivers.tm5.registers import RobotFlags
 from sim.tm5_emulator import TM5Emulator
 from tests.tm5_fixtures import DT, LIMITS, LINK_LOSS_BOUND_S, Q0, FakePlant, make_arm, read_until_ok, wait_for
 

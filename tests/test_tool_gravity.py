@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.tool_gravity import G, GravityCompensatedSource, ToolGravity, fit, gravity_direction, load, save
+from cell.sensing.tool_gravity import G, GravityCompensatedSource, ToolGravity, fit, gravity_direction, load, save
 from drivers.errors import DataError
 from drivers.interfaces import ArmState, Wrench
 
@@ -113,8 +113,8 @@ def test_identification_on_the_simulated_cell_and_the_sensor_source_compensated(
     from app.cells import calibration_cells
     from app.sensing import with_tool_gravity
     from app.tasks_registry import robot_for
-    from cell.loop import OpenCell
-    from tasks.tool_gravity import identify_tool_gravity
+    from cell.control.loop import OpenCell
+    from tasks.setup.weigh_tool import identify_tool_gravity
 
     vs = dataclasses.replace(cfg.virtual_sensor, calibration_dir=str(tmp_path / "{tool}"))
     cfg = dataclasses.replace(cfg, virtual_sensor=vs)

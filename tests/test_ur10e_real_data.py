@@ -26,8 +26,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from cell.robots import load_robot_spec
-from tasks.import_ur10e import CURRENT_COLS, DQ_COLS, Q_COLS, drive_gains, read_log
+from cell.model.specs import load_robot_spec
+from tasks.lab.import_ur10e import CURRENT_COLS, DQ_COLS, Q_COLS, drive_gains, read_log
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "ur10e"
 RUNS = ("jointwise/ur-20_01_22-joint_2.csv", "jointwise/ur-20_01_22-joint_3.csv")

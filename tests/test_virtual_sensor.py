@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from cell.observer import KalmanObserver
-from cell.virtual_sensor import VirtualForceSource, build_virtual_source
-from cell.wrench_map import ContactMap, JacobianMap, LearnedMap, fit_learned_axes
+from cell.sensing.observer import KalmanObserver
+from cell.sensing.virtual_sensor import VirtualForceSource, build_virtual_source
+from cell.sensing.wrench_map import ContactMap, JacobianMap, LearnedMap, fit_learned_axes
 from drivers.interfaces import ArmState
 from tests.vsfixtures import artefacts
 
@@ -24,7 +24,7 @@ def _source(vs, observer: str, mapping: str = "jacobian") -> VirtualForceSource:
 
 
 def _posture(robot, home, xyz):
-    from cell.trajectory import tool_down_pose
+    from cell.control.trajectory import tool_down_pose
 
     q, ok = robot.ik(tool_down_pose(np.asarray(xyz, float)), home)
     assert ok
@@ -172,7 +172,7 @@ def test_free_motion_estimate_stays_near_zero(vs, home):
     holder.open()
     try:
         # Reach the start, rest, re-bias in free space; then move fast there and back.
-        from cell.trajectory import JointMove
+        from cell.control.trajectory import JointMove
 
         q0 = holder.plant.measured_state().q
         jm = JointMove(q0, a, robot.limits.velocity * 0.3)
@@ -202,7 +202,7 @@ def test_known_static_load_is_read_correctly(vs, home, observer):
     dt = cfg.loop.period_s
     holder.open()
     try:
-        from cell.trajectory import JointMove
+        from cell.control.trajectory import JointMove
 
         q0 = holder.plant.measured_state().q
         jm = JointMove(q0, q, robot.limits.velocity * 0.3)
@@ -273,7 +273,7 @@ def test_kalman_gate_rejects_a_break_away_swing_but_passes_a_real_contact(vs):
 
 def test_each_tool_gets_its_configured_settings():
     from cell.config import VirtualSensorConfig, load_config
-    from cell.configio import load_dataclass
+    from drivers.configio import load_dataclass
     from drivers.errors import ConfigError
 
     # The shipped choice: the momentum observer zeroed at each tare for the wipe (and calibrate's default

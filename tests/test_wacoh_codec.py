@@ -10,7 +10,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from drivers.errors import ProtocolError
-from drivers.wacoh_codec import (
+from drivers.wacoh.codec import (
     RAW_MAX,
     RAW_ZERO,
     RECORD_LEN,

@@ -12,9 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.errors import ConfigError, ProtocolError
-from drivers.wacoh import WacohSensor
-from drivers.wacoh_codec import decode_counts
-from drivers.wacoh_config import WacohConfig
+from drivers.wacoh.codec import decode_counts
+from drivers.wacoh.config import WacohConfig
+from drivers.wacoh.driver import WacohSensor
 from sim.wacoh_emulator import REAL_UNIT_SENSITIVITIES, FaultConfig
 from tests.test_wacoh_codec import REAL_LINE, corruptions
 from tests.wacoh_fixtures import FALLBACK, SLACK_TIMEOUT_S, EmulatorFactory, Source, connect
@@ -118,7 +118,7 @@ def test_connect_falls_back_when_p_is_never_answered(
     make_emulator: EmulatorFactory, sensors: list[WacohSensor], caplog: pytest.LogCaptureFixture
 ) -> None:
     emulator = make_emulator(Source(), faults=FaultConfig(ignore_p=True))
-    caplog.set_level(logging.WARNING, logger="drivers.wacoh")
+    caplog.set_level(logging.WARNING, logger="drivers.wacoh.driver")
     t0 = time.monotonic()
     sensor = connect(sensors, emulator, sensitivities=list(FALLBACK.values), timeout_s=0.05)
     assert time.monotonic() - t0 < 0.5
@@ -223,7 +223,7 @@ def test_a_control_byte_in_every_p_reply_falls_back_with_a_warning(
     byte: int, caplog: pytest.LogCaptureFixture
 ) -> None:
     """One flipped bit turns CR into 0x1D: that raised an uncaught ValueError at connect."""
-    caplog.set_level(logging.WARNING, logger="drivers.wacoh")
+    caplog.set_level(logging.WARNING, logger="drivers.wacoh.driver")
     sensor, port = scripted_sensor([REAL_LINE[:-2] + bytes([byte]) + b"\n"] * 6)
     assert sensor._request_sensitivities() == (FALLBACK, "config")
     assert port.asked == 6
@@ -232,7 +232,7 @@ def test_a_control_byte_in_every_p_reply_falls_back_with_a_warning(
 
 
 def test_an_implausible_p_reply_is_refused_naming_the_axis(caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.WARNING, logger="drivers.wacoh")
+    caplog.set_level(logging.WARNING, logger="drivers.wacoh.driver")
     lost_dot = b"32.800,32.815,32.835,1653.801,1634816,1636.136\r\n"
     sensor, _ = scripted_sensor([lost_dot] * 6)
     assert sensor._request_sensitivities() == (FALLBACK, "config")

@@ -11,9 +11,9 @@ import pytest
 
 from bench.timing import bench_serial
 from drivers.errors import LinkLostError
-from drivers.wacoh import WacohSensor
-from drivers.wacoh_codec import RAW_ZERO
-from drivers.wacoh_config import WacohConfig
+from drivers.wacoh.codec import RAW_ZERO
+from drivers.wacoh.config import WacohConfig
+from drivers.wacoh.driver import WacohSensor
 from sim.wacoh_emulator import FaultConfig, WacohEmulator
 from tests.wacoh_fixtures import (
     BIG_OFFSET,

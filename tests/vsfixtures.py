@@ -39,7 +39,7 @@ def artefacts() -> dict[str, Any]:
         return _CACHE
     from app.cells import calibration_cells
     from app.tasks_registry import robot_for
-    from tasks.calibrate import prepare
+    from tasks.setup.calibrate import prepare
 
     root = Path(tempfile.mkdtemp(prefix="tmcell-vs-"))
     ex = root / "ex.yaml"
@@ -48,7 +48,7 @@ def artefacts() -> dict[str, Any]:
     cfg = small_config(root)
     robot = robot_for(cfg, "wipe")
     opener, hand = calibration_cells(cfg, "sim", "wipe", robot, None)
-    from tasks.lab_collect import collect
+    from tasks.lab.collect import collect
 
     # A small collection through the lab (its own excitation config keeps the planning short).
     data_dir = cfg.virtual_sensor.path("data", "wipe")

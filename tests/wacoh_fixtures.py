@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.wacoh import WacohSensor
-from drivers.wacoh_codec import Sensitivities
-from drivers.wacoh_config import WacohConfig
+from drivers.wacoh.codec import Sensitivities
+from drivers.wacoh.config import WacohConfig
+from drivers.wacoh.driver import WacohSensor
 from sim.wacoh_emulator import REAL_UNIT_SENSITIVITIES, WacohEmulator
 
 S = REAL_UNIT_SENSITIVITIES.as_array()

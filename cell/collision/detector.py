@@ -1,0 +1,249 @@
+"""Collision detection on the hybrid model: a fast momentum-observer residual per joint against thresholds
+set by the model's own uncertainty, checked every control period.
+
+The residual r (N·m, the external joint torque in the cell's convention) comes from a generalised
+momentum observer of its own, with a far higher bandwidth than the virtual sensor's (that one is tuned
+for steady contact forces and filters short impacts away).  Per joint the threshold is
+
+    thr_j = floor_j + sigma_factor * sigma_j(|q'_j|) + band_j * max(0, 1 - |q'_j| / stick_speed)
+            + inertia * max(|(M(q) q'')_j|, |(M(q) q''_cmd)_j|)
+            + payload_kg * (|g1_j(q) - g1_j(q_zero)| + sum_i |J_ij| |a_i|)
+
+* sigma_j: the model's one-sigma residual at that joint speed (the model lab's held-out levels, stored
+  with the model; wider where the model is less sure, e.g. at high speed), and the physics part's
+  level where the training data did not cover the joint's (q, q', q'');
+* band_j: the joint's static friction band (the model's Coulomb level): a joint at or near rest holds
+  whatever torque its friction allows, which no model of the state predicts;
+* inertia: the relative error of the rigid body's inertial torque (mass errors, and the measured
+  torque's latency against the joint positions, which shows while the arm accelerates).  q'' is the
+  causal estimate from the measured speeds, q''_cmd the largest commanded acceleration of the last few
+  periods: the estimate lags a move's start by periods while the torques already change (the rigid
+  body's part of the residual acts through the momentum at once, the learned part through the lagging
+  estimate).  The command is the arm's intent, so an impact, which changes the measured motion but
+  not the command, does not widen its own threshold;
+* g1: the joint torques of 1 kg of payload at the tool's centre of mass (an unknown payload error
+  moves the gravity torque by this per kg, relative to where the residual was last zeroed); J, a: that
+  point's Jacobian and commanded acceleration (the same error's inertial load, which showed as a 1.06x
+  joint-5 alarm while braking with +0.45 kg);
+* floor_j: what is left (quantisation, the servo's transients) and the configured margin.
+
+In free motion a joint over its threshold for `confirm_periods` periods in a row is a collision.  In a
+state where the task expects contact the joint residual carries the task's own force, so there the
+fast residual is mapped to a tool wrench and its force checked against the task's contact limit: a
+short impact the task's filtered wrench would hide still counts.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from cell.config import DetectorSettings
+from cell.model.dynamics.learned import LearnedModel
+from cell.model.dynamics.uncertainty import Coverage
+from cell.model.robot import RobotModel
+from cell.sensing.observer import MomentumObserver
+from cell.sensing.wrench_map import JacobianMap
+from drivers.errors import SafetyStopError
+from drivers.interfaces import ArmState
+
+GRAVITY = np.array([0.0, 0.0, 9.81])
+
+
+@dataclass
+class Detection:
+    """One collision: when, where and how clearly."""
+
+    t: float  # s since the loop started
+    cycle: int
+    state: str  # the task's state
+    mode: str  # "free" (joint thresholds) or "contact" (tool force against the contact limit)
+    joints: list[int]  # 1-based joints over their thresholds (free mode)
+    ratio: float  # largest |r_j| / thr_j (free) or |F| / limit (contact)
+    residual_nm: list[float]
+    threshold_nm: list[float]
+    force_n: list[float]  # the fast tool force at detection, tool frame (as the F/T sensor; tool on environment)
+
+    def describe(self) -> str:
+        if self.mode == "free":
+            js = ", ".join(str(j) for j in self.joints)
+            return (f"collision in state {self.state} at t={self.t:.3f} s: joint{'s' if len(self.joints) > 1 else ''} "
+                    f"{js} over threshold ({self.ratio:.1f}x)")
+        return (f"collision in state {self.state} at t={self.t:.3f} s: fast tool force "
+                f"{np.linalg.norm(self.force_n):.0f} N over the contact limit ({self.ratio:.1f}x)")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"t": round(self.t, 4), "cycle": self.cycle, "state": self.state, "mode": self.mode,
+                "joints": list(self.joints), "ratio": round(self.ratio, 3),
+                "residual_nm": [round(v, 3) for v in self.residual_nm],
+                "threshold_nm": [round(v, 3) for v in self.threshold_nm],
+                "force_n": [round(v, 2) for v in self.force_n]}
+
+
+def _beyond_coverage(coverage: Coverage | None, n: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per joint: the fastest trained speed (rad/s, the coverage grid's |q'| reach) and the physics
+    part's level in its speed bin; None without coverage."""
+    if coverage is None:
+        return None
+    v_max = np.full(n, np.inf)
+    js = coverage.joints
+    lo, hi = coverage.lo[:, 1], coverage.lo[:, 1] + coverage.bins * coverage.width[:, 1]
+    v_max[js] = np.maximum(np.abs(lo), np.abs(hi))
+    finite = np.where(np.isfinite(v_max), v_max, 0.0)
+    # Trust 0 with blending: the physics part's level in that speed bin.
+    edge = dataclasses.replace(coverage, blend=True).sigma(finite[None, :], np.zeros((1, n)))[0]
+    return v_max, edge
+
+
+class CollisionDetector:
+    """Fast residual, thresholds and the tool force they imply, one control period at a time."""
+
+    def __init__(self, model: LearnedModel, robot: RobotModel, dt: float, settings: DetectorSettings,
+                 wrench_point: np.ndarray, over_wire: bool = False) -> None:
+        n = robot.n
+        if len(settings.floor_nm) != n:
+            raise ValueError(f"collision.detector.floor_nm needs {n} values (one per joint), "
+                             f"got {len(settings.floor_nm)}")
+        self.settings = settings
+        self.dt = dt
+        self.n = n
+        gain = min(settings.observer_gain, settings.wire_observer_gain) if over_wire else settings.observer_gain
+        self.observer = MomentumObserver(model, dt, gain,
+                                         max(1, int(round(settings.rebias_window_s / dt))), trapezoid=True)
+        self.coverage = model.coverage
+        # The levels blended by coverage alone (the sticking regime has its own term below).
+        self._levels = (dataclasses.replace(model.coverage, blend=True, stick_speed=0.0)
+                        if model.coverage is not None else None)
+        self.floor = np.asarray(settings.floor_nm, float)
+        self._beyond = _beyond_coverage(model.coverage, n)
+        self.margin = settings.wire_margin if over_wire else 1.0
+        # Over a wire a single repeated or skipped read can swing the residual for one period.
+        self.confirm = max(settings.confirm_periods, 2) if over_wire else settings.confirm_periods
+        self.wrench_map = JacobianMap(robot, np.asarray(wrench_point, float))
+        # 1 kg at the tool's centre of mass: its gravity torques are what a payload error adds per kg.
+        self._pm = robot.model.copy()
+        tool = robot.tool
+        com = tool.com if tool.com is not None else np.asarray(tool.tcp_offset, float) / 2
+        flange = self._pm.frames[robot.flange_id]
+        self._com_id = self._pm.addFrame(pin.Frame("payload_com", flange.parentJoint, robot.flange_id,
+                                                   flange.placement * pin.SE3(np.eye(3), np.asarray(com, float)),
+                                                   pin.FrameType.OP_FRAME))
+        self._pd = self._pm.createData()
+        self.reset()
+
+    def reset(self) -> None:
+        self.observer.reset()
+        self._g_zero = np.zeros(self.n)
+        self._zeroed = False
+        self._over = np.zeros(self.n, np.int64)
+        self._force_over = 0
+        self.residual = np.zeros(self.n)
+        self.threshold = np.full(self.n, np.inf)
+        self.force = np.zeros(3)
+        self._q = np.zeros(self.n)
+        self._last: ArmState | None = None
+        self._cmds: collections.deque[np.ndarray] = collections.deque(maxlen=3)
+        self._cmd_inertial: collections.deque[np.ndarray] = collections.deque(
+            maxlen=max(1, self.settings.command_window_periods))
+        self._cmd_payload: collections.deque[np.ndarray] = collections.deque(
+            maxlen=max(1, self.settings.command_window_periods))
+
+    def rebias(self) -> None:
+        """Zero the residual here (arm at rest, no contact): the payload term then counts from this pose."""
+        self.observer.rebias()
+        self._g_zero = self._payload_gravity(self._q)
+        self._zeroed = True
+
+    def _payload_gravity(self, q: np.ndarray) -> np.ndarray:
+        J = pin.computeFrameJacobian(self._pm, self._pd, q, self._com_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        return np.asarray(J[:3].T @ GRAVITY)
+
+    def _payload_inertial(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """Per kg at the tool's centre of mass: sum_i |J_ij| |a_i|, a its linear acceleration (q, q', q'')."""
+        pin.forwardKinematics(self._pm, self._pd, q, v, a)
+        pin.computeJointJacobians(self._pm, self._pd)  # on the placements just computed: one kinematics pass
+        acc = pin.getFrameClassicalAcceleration(self._pm, self._pd, self._com_id,
+                                                pin.ReferenceFrame.LOCAL_WORLD_ALIGNED).linear
+        J = pin.getFrameJacobian(self._pm, self._pd, self._com_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        return np.asarray(np.abs(J[:3]).T @ np.abs(acc))
+
+    def thresholds(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
+        s = self.settings
+        thr = self.floor.copy()
+        if self.coverage is not None and self._levels is not None:
+            # Where the training data was sparse the hybrid's level does not hold: the physics part's does.
+            w = self.coverage.weight_one(q, dq, ddq, min_count=s.coverage_min_count, stick=False)
+            thr += s.sigma_factor * self._levels.sigma(dq[None, :], w[None, :])[0]
+        if self._beyond is not None:
+            # Beyond the joint speeds the model was trained at its error is unknown: the physics part's
+            # level at the trained edge, grown in proportion to the speed (a viscous-like error).
+            # Any joint beyond its reach takes every joint out of the model's experience (the coupling and
+            # velocity-product torques of a fast joint load the others), so the largest excess counts.
+            v_max, edge = self._beyond
+            thr += s.sigma_factor * edge * max(0.0, float(np.max(np.abs(dq) / v_max)) - 1.0)
+        if s.stick_speed > 0 and self.coverage is not None:
+            thr += self.coverage.static_band * np.maximum(0.0, 1.0 - np.abs(dq) / s.stick_speed)
+        if s.inertia_uncertainty > 0:
+            if self._cmd_inertial:
+                inertial = np.max(np.asarray(self._cmd_inertial), axis=0)
+            else:  # no command stream (a detector fed states only): the measured motion's
+                inertial = np.abs(self.observer.inertial)
+            thr += s.inertia_uncertainty * inertial
+        if s.payload_uncertainty_kg > 0:
+            g = self._payload_gravity(q)
+            thr += s.payload_uncertainty_kg * np.abs(g - self._g_zero if self._zeroed else g)
+            if self._cmd_payload:
+                thr += s.payload_uncertainty_kg * np.max(np.asarray(self._cmd_payload), axis=0)
+        return thr
+
+    def update(self, state: ArmState) -> np.ndarray:
+        """One period: the residual (N·m), its thresholds and the fast tool force; returns the residual."""
+        q = np.asarray(state.q, float)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(state.dq)) and np.all(np.isfinite(state.tau))):
+            raise SafetyStopError("collision detector: non-finite joint state (q, q' or torque): cannot check "
+                                  "for collisions")
+        # Over a wire the host may read the controller's previous sample again (no new cycle yet): a
+        # repeat carries no new momentum, and integrating its torque over another period would.
+        if self._last is not None and np.array_equal(q, self._last.q) and np.array_equal(state.tau, self._last.tau):
+            return self.residual
+        self._last = state
+        self._q = q
+        self.residual = self.observer.update(state)
+        self.threshold = self.margin * self.thresholds(q, np.asarray(state.dq, float), self.observer.acceleration)
+        self.force = self.wrench_map.map(q, self.residual).wrench[:3]
+        return self.residual
+
+    def commanded(self, q_cmd: np.ndarray) -> None:
+        """The target just sent (rad): its second difference is the commanded acceleration."""
+        if self.settings.command_window_periods == 0:
+            return
+        self._cmds.append(np.array(q_cmd, float))
+        if len(self._cmds) == 3:
+            a = (self._cmds[2] - 2.0 * self._cmds[1] + self._cmds[0]) / self.dt**2
+            # Each entry of M may be off by its share: the bound is sum_k |M_jk| |a_k|, not |(M a)_j|
+            # (a wrist joint barely commanded still carries the errors of the base joints' coupling).
+            self._cmd_inertial.append(np.abs(self.observer.mass) @ np.abs(a))
+            if self.settings.payload_uncertainty_kg > 0:
+                self._cmd_payload.append(self._payload_inertial(self._cmds[2], (self._cmds[2] - self._cmds[1])
+                                                                / self.dt, a))
+
+    def check_free(self) -> np.ndarray:
+        """Joints (0-based) over their thresholds for `confirm_periods` periods in a row."""
+        over = np.abs(self.residual) > self.threshold
+        self._over = np.where(over, self._over + 1, 0)
+        self._force_over = 0
+        return np.flatnonzero(self._over >= self.confirm)
+
+    def check_contact(self, limit_n: float) -> bool:
+        """Whether the fast tool force has been over `limit_n` for `confirm_periods` periods in a row."""
+        self._over[:] = 0
+        self._force_over = self._force_over + 1 if float(np.linalg.norm(self.force)) > limit_n else 0
+        return self._force_over >= self.confirm
+
+    def ratios(self) -> np.ndarray:
+        return np.abs(self.residual) / self.threshold
