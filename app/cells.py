@@ -43,11 +43,11 @@ class RealCell:
     """The physical cell: drivers from config, paced by the wall clock."""
 
     def __init__(self, cfg: CellConfig, robot: RobotModel) -> None:
-        from drivers.real_cell import make_real_devices
+        from drivers.real_cell import open_drivers
 
         self.period = cfg.loop.period_s
-        self.devices = make_real_devices(cfg.devices.arm.settings, cfg.devices.sensor.settings, robot.limits,
-                                         cfg.loop.period_s, f"{cfg.source}: devices")
+        self.devices = open_drivers(cfg.devices.arm.settings, cfg.devices.sensor.settings, robot.limits,
+                                    cfg.loop.period_s, f"{cfg.source}: devices")
 
     def open(self) -> OpenCell:
         from cell.control.loop import WallTicker
@@ -55,8 +55,7 @@ class RealCell:
 
         d = self.devices
         assert d.sensor is not None and d.sensor_cfg is not None
-        d.arm.connect()
-        d.sensor.connect()
+        d.connect()
         return OpenCell(kind="real", arm=d.arm, force=SensorForceSource(d.sensor, d.sensor_cfg.tare_samples),
                         ticker=WallTicker(self.period))
 

@@ -9,11 +9,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from app.commands_planning import bench_planning_cmd, planning_tags
-from app.common import emit, load_cell_config, save_bench_summary
-from app.sensing import ensure_virtual_artefacts, make_force_source, with_guard
+from app.commands_planning import add_planning_options, bench_planning_cmd, planning_tags
+from app.common import (
+    add_common_options,
+    add_nthread_option,
+    add_plant_option,
+    add_robot_option,
+    emit,
+    load_cell_config,
+    save_bench_summary,
+)
+from app.progress import heartbeat
+from app.sensing import FORCE_SOURCES, ensure_virtual_artefacts, make_force_source, with_guard
 from app.tasks_registry import robot_for
-from cell.config import load_config
+from cell.cliargs import COUNT, float_in, int_in
+from cell.config import REACTIONS, check_task_speeds, load_config
 from cell.control.loop import OpenCell
 from drivers.errors import ConfigError
 
@@ -79,6 +89,7 @@ def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
     cfg = load_cell_config(args)
     robot = robot_for(cfg, "peg")
     pcfg = load_peg_config(cfg.tasks.get("peg"), f"{cfg.source}: tasks.peg", args.force_source)
+    check_task_speeds(cfg, "peg", pcfg)
     if args.force_source == "virtual":
         ensure_virtual_artefacts(cfg, "peg", "sim", robot)
 
@@ -93,7 +104,8 @@ def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
     if getattr(args, "view", False):
         from app.view import live_view
 
-        view = live_view(robot, f"bench-peg-trial-{(args.only or [0])[0]}", args.serve, args.force_source == "virtual")
+        view = live_view(robot, f"bench-peg-trial-{(args.only or [0])[0]}", args.serve, args.force_source == "virtual",
+                         args.bind)
     record = None
     if args.record:
         from cell.data.recorder import new_run_dir
@@ -130,14 +142,71 @@ def _bench_drivers(args: argparse.Namespace) -> dict[str, Any]:
     return bench_drivers(args.n)
 
 
+HOLD_OUT_EVERY = 4  # a dataset without a test split: every 4th trajectory is held out for the timing
+
+
+def held_out_dataset(manifest: Path, folder: Path) -> tuple[Path, int]:
+    """`manifest` itself when it lists test files; else a dataset in `folder` whose test split is every
+    HOLD_OUT_EVERY-th trajectory of the training files (whole trajectories, by their `traj` id; whole files
+    when a file has none) and whose training split is the rest.  Returns (manifest, trajectories held out)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+    import yaml
+
+    from cell.data.dataset import load_manifest, manifest_files
+    from drivers.configio import read_yaml
+
+    if load_manifest(manifest).test:
+        return manifest, 0
+    files = manifest_files(manifest, "train")
+    folder.mkdir(parents=True, exist_ok=True)
+    train: list[str] = []
+    test: list[str] = []
+    held = 0
+    for i, path in enumerate(files):
+        table = pq.read_table(path)
+        if "traj" not in table.column_names:
+            (test if i % HOLD_OUT_EVERY == HOLD_OUT_EVERY - 1 else train).append(str(path.resolve()))
+            held += i % HOLD_OUT_EVERY == HOLD_OUT_EVERY - 1
+            continue
+        ids = sorted(set(table.column("traj").to_pylist()))
+        out = ids[HOLD_OUT_EVERY - 1::HOLD_OUT_EVERY] or ids[-1:]
+        if len(out) == len(ids):  # one trajectory: nothing would be left to train on
+            train.append(str(path.resolve()))
+            continue
+        mask = pc.is_in(table.column("traj"), value_set=pa.array(out))
+        for part, rows in (("test", mask), ("train", pc.invert(mask))):
+            target = folder / f"{part}_{i:03d}.parquet"
+            pq.write_table(table.filter(rows), target)
+            (test if part == "test" else train).append(target.name)
+        held += len(out)
+    if not test:
+        raise ConfigError(f"{manifest}: no test split and too few trajectories to hold one out")
+    doc = dict(read_yaml(manifest))
+    doc.update(train=train, test=test, loaded=[str((manifest.parent / f).resolve()) for f in doc.get("loaded") or []])
+    derived = folder / "dataset.yaml"
+    derived.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+    return derived, held
+
+
 def _bench_model(args: argparse.Namespace) -> dict[str, Any]:
+    import tempfile
+
     from tasks.lab.bench import bench_model
 
     if not args.data:
-        raise ConfigError("bench model needs --data DATASET.yaml (make one with main.py collect)")
-    return bench_model(load_cell_config(args), Path(args.data), Path(args.model) if args.model else None,
-                       train_samples=args.train_samples, fit_samples=args.fit_samples,
-                       calls=args.calls, nthread=args.nthread, robot=args.robot)
+        raise ConfigError("bench model needs --data DATASET.yaml (made by main.py prepare or collect)")
+    with tempfile.TemporaryDirectory(prefix="bench-model-") as tmp:
+        data, held = held_out_dataset(Path(args.data), Path(tmp))
+        if held:
+            log.info("%s has no test split: %d trajectories of its training split held out for the timing",
+                     args.data, held)
+        with heartbeat("bench model"):  # its H1 fit and the timed fit show no count
+            out = bench_model(load_cell_config(args), data, Path(args.model) if args.model else None,
+                              train_samples=args.train_samples, fit_samples=args.fit_samples,
+                              calls=args.calls, nthread=args.nthread, robot=args.robot)
+    return {**out, "held_out_trajectories": held}
 
 
 def _bench_faults(args: argparse.Namespace) -> dict[str, Any]:
@@ -155,7 +224,7 @@ def _bench_collision(args: argparse.Namespace) -> dict[str, Any]:
     cfg = load_cell_config(args)
     robot = robot_for(cfg, "peg")
     ensure_virtual_artefacts(cfg, "peg", "sim", robot)
-    model = load_observer_model(cfg.virtual_sensor.path("model", "peg"), robot)
+    model = load_observer_model(cfg.virtual_sensor.path("model", "peg"), robot, cfg.loop.period_s)
     return bench_collision(cfg, robot, model, impacts=args.impacts, seed=args.seed if args.seed is not None else 0,
                            free_s=args.free_s, reaction=args.reaction)
 
@@ -179,6 +248,12 @@ def _bench_peg_sim(args: argparse.Namespace) -> dict[str, Any]:
     return data
 
 
+def _bench_hand_guide(args: argparse.Namespace) -> dict[str, Any]:
+    from app.commands_hand_guide import bench_hand_guide_cmd
+
+    return bench_hand_guide_cmd(args)
+
+
 BENCHES: dict[str, Bench] = {
     "sim": Bench(_bench_sim),
     "plant": Bench(_bench_plant),
@@ -195,16 +270,99 @@ BENCHES: dict[str, Bench] = {
     "peg-sim": Bench(_bench_peg_sim),
     "planning": Bench(bench_planning_cmd, passed=lambda out: out["torque_violations"]["model"] == 0,
                       tags=planning_tags),
+    # Exit 1 when a hand-guiding figure misses its target or the push did not stop the arm.
+    "hand-guide": Bench(_bench_hand_guide, passed=lambda out: out["passed"]),
 }
 BENCH_NAMES = tuple(BENCHES)
+
+
+BENCH_HELP = {
+    "sim": "real-time factor of the simulated plant and the controller in lock-step",
+    "plant": "the simulated plant's error budget (P1, ideal P2, noise floor)",
+    "drivers": "one Modbus state read and target write, one serial wrench read, over loopback",
+    "model": "serving speed of the hybrid model, the fit time, the virtual sensor's step",
+    "peg-in-hole": "randomised insertions on the simulated cell",
+    "faults": "the fault-injection matrix on the emulated cell with the real drivers",
+    "collision": "scripted impacts and free motion: detections, delays, false alarms",
+    "tool-gravity": "the tool's weight on the F/T sensor, identified and compensated",
+    "peg-sim": "the simulator at tight peg fits: bore, contact give, wedging, cost",
+    "planning": "four planners on named and random paths, each plan run on the plant",
+    "hand-guide": "sensorless hand guiding: a simulated hand along a 0.4 m path, release, a push over the limit",
+}
+DRAW_SEED = "seed of the random draws and the plant's noise (default 0)"
+
+
+def _bench_options(name: str, b: argparse.ArgumentParser) -> None:
+    """The options of `bench NAME`: its own, and of the shared ones only those it reads."""
+    if name == "peg-in-hole":
+        b.add_argument("--trials", type=COUNT, default=PEG_TRIALS, help="randomised insertions")
+        b.add_argument("--max-offset-mm", type=float_in(0, 20), default=PEG_MAX_OFFSET_MM,
+                       help="hole offset drawn in +-this on x and y (mm)")
+        b.add_argument("--max-tilt-deg", type=float_in(0, 10), default=PEG_MAX_TILT_DEG,
+                       help="hole tilt drawn in +-this about x and y (degrees)")
+        b.add_argument("--peg-diameter-mm", type=float_in(1, 100, lo_open=True), default=None,
+                       help="peg diameter (mm; default: the plant profile's, 21.4)")
+        b.add_argument("--force-source", choices=FORCE_SOURCES, default="virtual",
+                       help="what the task regulates with: the virtual force sensor or the F/T sensor")
+        b.add_argument("--only", type=int_in(0), nargs="+", default=None, metavar="K",
+                       help="run only these trial numbers (the same draws as in the full bench; default: all)")
+        b.add_argument("--record", action="store_true",
+                       help="log every trial run (runs/<date>-bench-peg/trial_NNN, as `run` logs)")
+        from app.view import add_view_options
+
+        add_view_options(b, "one trial (--only K)")
+    elif name == "collision":
+        b.add_argument("--impacts", type=COUNT, default=COLLISION_IMPACTS, help="scripted impacts")
+        b.add_argument("--free-s", type=float_in(0, 3600), default=COLLISION_FREE_S,
+                       help="simulated seconds of free motion watched for false alarms (s)")
+        b.add_argument("--reaction", choices=REACTIONS, default="stop", help="the reaction to a detected impact")
+    elif name == "drivers":
+        b.add_argument("--n", type=COUNT, default=500, help="timed samples of each exchange")
+    elif name == "model":
+        b.add_argument("--data", default=None, help="dataset manifest (dataset.yaml) from `prepare` or `collect`; "
+                       "without a test split, trajectories of the training split are held out")
+        b.add_argument("--model", default=None, help="model artefact folder (default: train an H1 on --data)")
+        b.add_argument("--calls", type=COUNT, default=5000, help="single-sample predictions timed")
+        b.add_argument("--train-samples", type=int_in(100), default=24_000,
+                       help="H1 training samples (without --model)")
+        b.add_argument("--fit-samples", type=int_in(100), default=500_000, help="samples of the timed XGBoost fit")
+        add_nthread_option(b)
+        add_robot_option(b, "the dataset's ")
+    elif name == "planning":
+        b.add_argument("--model", default=None, help="torque model artefact, or 'nominal' (the URDF's rigid body; "
+                       "default: the prepared wipe model)")
+        add_planning_options(b)
+    seeded = {"sim": "plant noise seed (default: the profile's)", "plant": "plant noise seed (default: the profile's)",
+              "peg-in-hole": DRAW_SEED, "collision": DRAW_SEED, "tool-gravity": DRAW_SEED,
+              "planning": "seed of the random paths and the plant's noise (default 0)",
+              "hand-guide": "plant noise seed (default: the profile's)"}
+    if name in ("plant", "peg-in-hole", "collision", "tool-gravity", "planning", "model"):
+        add_plant_option(b)
+    if name in seeded:
+        add_common_options(b, seeded[name])
+    else:  # these read no seed; model and faults read the cell config
+        if name in ("model", "faults"):
+            b.add_argument("--config", type=Path, default=None, help="cell config YAML (default: config/cell.yaml)")
+        b.add_argument("--json", action="store_true", help="print one JSON object as the last stdout line")
+        b.set_defaults(seed=None)
+
+
+def add_bench_parser(sub: argparse._SubParsersAction) -> None:
+    """`bench NAME [options]`: one sub-command per benchmark, each with only the options it reads."""
+    b = sub.add_parser("bench", help="benchmarks that print the project's measured figures",
+                       description="Each benchmark prints its summary and saves it under artifacts/bench/; "
+                       "`main.py bench NAME --help` lists its options.")
+    names = b.add_subparsers(dest="what", required=True, metavar="NAME", parser_class=type(b))
+    for name in BENCH_NAMES:
+        one = names.add_parser(name, help=BENCH_HELP[name], description=BENCH_HELP[name])
+        _bench_options(name, one)
+    b.set_defaults(func=cmd_bench)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
     chosen = BENCHES.get(args.what)
     if chosen is None:
         raise ConfigError(f"bench {args.what}: unknown benchmark")
-    if getattr(args, "view", False) and args.what != "peg-in-hole":
-        raise ConfigError(f"bench {args.what}: --view shows one trial of bench peg-in-hole only")
     if getattr(args, "view", False) and len(args.only if args.only is not None else range(args.trials)) != 1:
         raise ConfigError("bench peg-in-hole --view shows one trial: add --only K (or --trials 1)")
     out = chosen.run(args)

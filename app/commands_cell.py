@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import json
+import logging
+import time
 from typing import Any
 
 import numpy as np
@@ -13,6 +16,8 @@ from app.sensing import ensure_virtual_artefacts, make_force_source, with_guard
 from app.tasks_registry import TASKS, build_task, robot_for
 from cell.config import load_config
 
+log = logging.getLogger("tmcell")
+
 
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = load_cell_config(args)
@@ -20,18 +25,19 @@ def cmd_run(args: argparse.Namespace) -> int:
     robot = robot_for(cfg, spec.tool)
     task, max_duration = build_task(args.task, cfg, robot, args.force_source)
     kind = cell_kind(cfg, args.cell)
+    publisher = None
+    if getattr(args, "publish", None):  # resolved here, once: an unknown host is refused before any work
+        from cell.view.publish import WrenchPublisher, parse_endpoint
+
+        publisher = WrenchPublisher(parse_endpoint(args.publish), robot.n)
     if args.force_source == "virtual":
         ensure_virtual_artefacts(cfg, spec.tool, kind, robot, args.seed)
     view = None
     if getattr(args, "view", False):
         from app.view import live_view
 
-        view = live_view(robot, f"run-{args.task}", args.serve, args.force_source == "virtual")
-    publisher = None
-    if getattr(args, "publish", None):
-        from cell.view.publish import WrenchPublisher, parse_endpoint
-
-        publisher = WrenchPublisher(parse_endpoint(args.publish), robot.n)
+        view = live_view(robot, f"run-{args.task}", args.serve, args.force_source == "virtual",
+                         args.bind)
     sinks = [s for s in (view, publisher) if s is not None]
     holder = open_cell(cfg, kind, robot, args.seed, spec.scene)
     try:
@@ -71,48 +77,104 @@ def run_tags(kind: str, force_source: str) -> list[str]:
     return ([kind] if kind != "sim" else []) + (["sensor"] if force_source == "sensor" else [])
 
 
+WRENCH_WHERE = "at the F/T sensor face, sensor frame, untared"  # status reads the sensor as it is, no tare
+AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+
+
+def read_status(cell: Any, robot: Any) -> dict[str, Any]:
+    """One reading of the arm and the F/T sensor, every value with its unit in its key."""
+    state = cell.arm.read_state()
+    wrench = cell.force.read(state)
+    return {
+        "cell": cell.kind,
+        "lifecycle": cell.arm.lifecycle.value,
+        "t": state.t,
+        "q_deg": np.degrees(state.q).round(3).tolist(),
+        "dq_deg_s": np.degrees(state.dq).round(3).tolist(),
+        "tau_nm": np.round(state.tau, 3).tolist(),
+        "status": {k: bool(v) for k, v in vars(state.status).items()},
+        "tcp_m": np.round(robot.tcp_pose(state.q).translation, 4).tolist(),
+        # The wrench's list keeps its key; where it was taken and in what frame is said beside it.
+        "wrench": np.round(wrench.vector, 3).tolist(),
+        "wrench_units": "N (Fx, Fy, Fz), N m (Mx, My, Mz)",
+        "wrench_frame": "F/T sensor frame, at the sensor face; what the tool exerts (pressing down reads +Fz)",
+        "wrench_tared": False,
+    }
+
+
+def format_status(out: dict[str, Any]) -> str:
+    """The human reading: each quantity labelled with its unit, the wrench with where and how it was taken."""
+    def row(values: list[float], fmt: str = "8.3f") -> str:
+        return " ".join(format(v, fmt) for v in values)
+
+    w = out["wrench"]
+    flags = ", ".join(k for k, v in out["status"].items() if v) or "none"
+    return "\n".join([
+        f"cell: {out['cell']}   lifecycle: {out['lifecycle']}   t: {out['t']:.3f} s   status flags: {flags}",
+        f"joints q [deg]:        {row(out['q_deg'])}",
+        f"joint speeds [deg/s]:  {row(out['dq_deg_s'])}",
+        f"joint torques [N m]:   {row(out['tau_nm'])}",
+        f"TCP position [m] (base frame): {row(out['tcp_m'], '.4f')}",
+        f"wrench {WRENCH_WHERE}: " + "  ".join(f"{a} {v:.3f} {'N' if a[0] == 'F' else 'N m'}"
+                                              for a, v in zip(AXES, w, strict=True)),
+    ])
+
+
 def cmd_status(args: argparse.Namespace) -> int:
+    import time
+
     cfg = load_config(args.config)
     robot = robot_for(cfg, "wipe")
     holder = open_cell(cfg, cell_kind(cfg, args.cell), robot, args.seed, None)
     try:
         cell = holder.open()
-        state = cell.arm.read_state()
-        wrench = cell.force.read(state)
-        tcp = robot.tcp_pose(state.q).translation
-        out = {
-            "cell": cell.kind,
-            "lifecycle": cell.arm.lifecycle.value,
-            "t": state.t,
-            "q_deg": np.degrees(state.q).round(3).tolist(),
-            "dq_deg_s": np.degrees(state.dq).round(3).tolist(),
-            "tau_nm": np.round(state.tau, 3).tolist(),
-            "status": {k: bool(v) for k, v in vars(state.status).items()},
-            "tcp_m": np.round(tcp, 4).tolist(),
-            "wrench": np.round(wrench.vector, 3).tolist(),
-        }
+        while True:
+            out = read_status(cell, robot)
+            if args.json:
+                emit(out, True)
+            else:
+                print(format_status(out), flush=True)
+            if not args.watch:
+                break
+            time.sleep(args.interval)  # Ctrl+C ends the watch (exit 130), the cell closed below
+            if not args.json:
+                print(flush=True)
     finally:
         holder.close()
-    emit(out, args.json)
+    return 0
+
+
+def _emulate_arm(args: argparse.Namespace) -> int:
+    """The arm alone on the config's protocol, on the MuJoCo plant (or a kinematic stand-in)."""
+    from sim.cell import make_plant
+    from sim.kinematic_plant import KinematicPlant
+    from sim.serve_cell import arm_emulator, arm_endpoint
+
+    cfg = load_cell_config(args)
+    plant = KinematicPlant() if args.kinematic else make_plant(cfg, args.seed, "free")
+    period = args.broadcast_ms / 1000.0 if args.broadcast_ms else None
+    with arm_emulator(cfg, plant, args.port, args.listen_port, period, args.bind) as emu:
+        log.info("arm emulator on %s %s; Ctrl+C or SIGTERM stops it", args.bind, arm_endpoint(emu))
+        print(json.dumps(arm_endpoint(emu)), flush=True)
+        try:
+            while True:
+                time.sleep(0.5)
+        except KeyboardInterrupt:
+            log.info("arm emulator: stopping")
     return 0
 
 
 def cmd_emulate(args: argparse.Namespace) -> int:
-    """Serve one device emulator until Ctrl+C (for standard tools or a second process)."""
+    """Serve one device emulator until Ctrl+C or SIGTERM (for standard tools or a second process); a closed
+    stdin does not end it."""
     if args.device == "cell":
-        from sim.emulated import serve_cell
+        from sim.serve_cell import serve_cell
 
         cfg = load_cell_config(args)
-        return serve_cell(cfg, args.seed, args.scene or cfg.scene.kind)
+        return serve_cell(cfg, args.seed, args.scene or cfg.scene.kind, args.port, args.listen_port,
+                          until_signal=True, bind=args.bind)
     if args.device == "arm":
-        from sim.tm5_emulator import emulate_arm_main
-
-        plant = None
-        if not args.kinematic:
-            from sim.cell import make_plant
-
-            plant = make_plant(load_config(args.config), args.seed, "free")
-        return emulate_arm_main(args.port, plant)
+        return _emulate_arm(args)
     from sim.wacoh_emulator import emulate_sensor_main
 
     return emulate_sensor_main(args.seed or 0)

@@ -12,6 +12,7 @@ from app.tasks_registry import robot_for
 from cell.cliargs import SEED, float_in
 from cell.config import load_config
 from drivers.errors import ConfigError, DriverError
+from tasks.setup.doctor import format_table
 
 log = logging.getLogger("tmcell")
 EMULATED_TAIL_PERIODS = 3.0  # the emulators share this machine's CPU (sim/emulated.py relaxes its timeouts alike)
@@ -22,11 +23,12 @@ def add_doctor_parser(sub: Any) -> None:
     from pathlib import Path
 
     dr = sub.add_parser("doctor", help="bring-up checks of the arm and sensor wiring: named, pass/fail, what to do")
-    dr.add_argument("--cell", choices=("real", "emulated"), default="real")
-    dr.add_argument("--tare-s", type=float_in(0.2, 60), default=2.0, help="seconds the sensor is watched at rest")
+    dr.add_argument("--cell", choices=("real", "emulated"), default="real",
+                    help="the real arm and sensor (devices.* in the config) or the emulated cell")
+    dr.add_argument("--tare-s", type=float_in(0.2, 60), default=2.0, help="how long the sensor is watched at rest (s)")
     dr.add_argument("--inject", action="append", default=None, metavar="CMD",
                     help="emulated cell: a fault command for the emulator before the checks (repeatable; "
-                         "e.g. 'freeze', 'estop', 'delay 20', 'sensor drop 0.5'; sim/emulated.py lists them)")
+                         "e.g. 'freeze', 'estop', 'delay 20', 'sensor drop 0.5'; sim/serve_cell.py lists them)")
     dr.add_argument("--config", type=Path, default=None, help="cell config YAML (default config/cell.yaml)")
     dr.add_argument("--seed", type=SEED, default=None, help="plant seed (emulated cell)")
     dr.add_argument("--json", action="store_true", help="print one JSON object as the last stdout line")
@@ -50,10 +52,10 @@ def cmd_doctor(args: argparse.Namespace) -> int:
         holder = EmulatedCell(cfg, robot.limits, seed=args.seed, scene_kind="free")
         arm, sensor = holder.arm, holder.sensor
     else:
-        from drivers.real_cell import make_real_devices
+        from drivers.real_cell import open_drivers
 
-        holder = make_real_devices(cfg.devices.arm.settings, cfg.devices.sensor.settings, robot.limits,
-                                   cfg.loop.period_s, f"{cfg.source}: devices")
+        holder = open_drivers(cfg.devices.arm.settings, cfg.devices.sensor.settings, robot.limits,
+                              cfg.loop.period_s, f"{cfg.source}: devices")
         arm, sensor = holder.arm, holder.sensor
     try:
         for command in args.inject or []:
@@ -69,10 +71,9 @@ def cmd_doctor(args: argparse.Namespace) -> int:
                     device.disconnect()
         holder.close()
     out = report(checks, args.cell)
-    if not args.json:
-        for c in checks:
-            log.info("%-24s %-7s %s", c.name, c.status.upper(), c.detail)
-            if c.status == "fail":
-                log.info("%-24s what to do: %s", "", c.fix)
-    emit(out, args.json)
+    if args.json:
+        emit(out, True)
+    else:
+        print(format_table(checks))
+        print(f"doctor --cell {args.cell}: " + ("PASSED" if out["passed"] else f"FAILED ({', '.join(out['failed'])})"))
     return 0 if out["passed"] else 1

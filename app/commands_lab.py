@@ -9,6 +9,7 @@ from typing import Any
 
 from app.cells import calibration_cells, cell_identity, cell_kind, open_cell
 from app.common import emit, load_cell_config
+from app.progress import heartbeat
 from app.sensing import PREPARE_SAMPLES, run_prepare
 from app.tasks_registry import robot_for
 from drivers.errors import ConfigError
@@ -18,7 +19,8 @@ log = logging.getLogger("tmcell")
 
 def cmd_prepare(args: argparse.Namespace) -> int:
     cfg = load_cell_config(args)
-    out = run_prepare(cfg, args.tool, args.cell, args.seed, args.samples, args.force)
+    with heartbeat(f"prepare --tool {args.tool}"):
+        out = run_prepare(cfg, args.tool, args.cell, args.seed, args.samples, args.force)
     emit(out, args.json)
     return 0
 
@@ -53,11 +55,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_collect(args: argparse.Namespace) -> int:
+    from cell.model.specs import robot_by_name
     from tasks.lab.collect import collect
-    from tasks.lab.robot import lab_robot
 
     cfg = load_cell_config(args)
-    robot = lab_robot(cfg)
+    robot = robot_by_name(cfg)
     kind = cell_kind(cfg, args.cell)
 
     def opener() -> Any:
@@ -74,9 +76,10 @@ def cmd_collect(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from tasks.lab.train import train
 
-    out = train(load_cell_config(args), Path(args.data), Path(args.out), kind=args.model, samples=args.samples,
-                window=args.window, grouping=args.grouping, derivatives=args.derivatives,
-                nthread=args.nthread, seed=args.seed or 0, robot=args.robot, learner=args.learner)
+    with heartbeat(f"train {args.model} ({args.learner})"):
+        out = train(load_cell_config(args), Path(args.data), Path(args.out), kind=args.model, samples=args.samples,
+                    window=args.window, grouping=args.grouping, derivatives=args.derivatives,
+                    nthread=args.nthread, seed=args.seed or 0, robot=args.robot, learner=args.learner)
     emit(out, args.json)
     return 0
 
@@ -97,6 +100,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     from tasks.lab.import_ur10e import import_ur10e
 
     out = import_ur10e(Path(args.out), train=args.train, test=args.test, loaded=args.loaded,
-                       max_gap_s=args.max_gap_s, payload_kg=args.payload_kg)
+                       max_gap_s=args.max_gap_s, payload_kg=args.payload_kg,
+                       add_test=args.add_test)
     emit(out, args.json)
     return 0

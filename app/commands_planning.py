@@ -26,19 +26,24 @@ ARTEFACTS = Path("artifacts/planning")
 
 
 def add_planning_options(b: argparse.ArgumentParser) -> None:
-    """The bench parser's options for `bench planning` (main.py calls this beside its other bench options)."""
+    """The options of `bench planning` (app/commands_bench.py adds them to its parser)."""
     b.add_argument("--paths", type=int_in(1, 500), default=PLANNING_PATHS,
-                   help="bench planning: random collision-free paths besides the three named ones")
+                   help="random collision-free paths besides the three named ones")
     b.add_argument("--ppo-updates", type=int_in(1, 10_000), default=PPO_UPDATES,
-                   help="bench planning: PPO training updates when the stored policy is missing or differs")
+                   help="PPO training updates (rollouts of 32 paths) when the stored policy is missing or differs")
+    b.add_argument("--paths-class", choices=("speed", "torque", "mixed"), default="speed",
+                   help="the random paths: across the workspace (speed-bound), short and medium joint 1-3 moves "
+                        "(torque-bound), or both alternately")
     b.add_argument("--no-guard", action="store_true",
-                   help="bench planning: run the plans without the collision guard (torques only; docs/planning.md)")
+                   help="run the plans without the collision guard (torques only; docs/planning.md)")
 
 
 def planning_tags(args: argparse.Namespace) -> list[str]:
     tags = [f"{args.paths}paths"] if args.paths != PLANNING_PATHS else []
     if args.ppo_updates != PPO_UPDATES:
         tags.append(f"ppo{args.ppo_updates}")
+    if args.paths_class != "speed":
+        tags.append(args.paths_class)
     return tags + (["noguard"] if args.no_guard else [])
 
 
@@ -84,7 +89,7 @@ def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
     settings.ppo.updates = args.ppo_updates
     setup = PlanningSetup(
         robot=robot, torque_fn=predictor, terms=terms, model_name=model_name, pcfg=plan_file.planner,
-        named=plan_file.paths, collisions=CollisionChecker(robot, replace(cfg.scene, kind="free")),
+        named=plan_file.paths, collisions=CollisionChecker.for_scene(robot, replace(cfg.scene, kind="free")),
         run=runner(not args.no_guard),
         # The calibration measures torques only: the guard cannot change them, and a false detection would
         # cut a reference run short and bias the accelerations low (docs/planning.md).
@@ -93,6 +98,6 @@ def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
         workspace=(np.asarray(cfg.safety.workspace_min, float), np.asarray(cfg.safety.workspace_max, float)),
         artefacts=ARTEFACTS, arm_identity=identity,
     )
-    out = bench_planning(setup, args.paths, args.seed if args.seed is not None else 0, settings)
+    out = bench_planning(setup, args.paths, args.seed if args.seed is not None else 0, settings, args.paths_class)
     out["guarded"] = not args.no_guard
     return out

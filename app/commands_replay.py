@@ -31,7 +31,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         from app.view import view_replay
 
         view_replay(run_dir, robot, est, str(out["virtual_sensor"]), args.serve,
-                    summary.get("force_source") == "virtual")
+                    summary.get("force_source") == "virtual", args.bind)
     return 0
 
 

@@ -35,9 +35,10 @@ def add_learner_parsers(sub: argparse._SubParsersAction, common: Callable[[argpa
     evaluate.add_argument("--max-epochs", type=COUNT, default=None, help="cap on the networks' epochs (quick runs)")
     tu = sub.add_parser("tune", help="search a learned model's hyperparameters (grid: Algorithm 1; bayes: Optuna)")
     tu.add_argument("--data", required=True, help="dataset manifest (dataset.yaml); only its training split is read")
-    tu.add_argument("--model", choices=("D", "H1", "H2", "H3"), default="H1")
-    tu.add_argument("--learner", choices=LEARNERS, default="xgboost")
-    tu.add_argument("--method", choices=("grid", "bayes"), default="bayes")
+    tu.add_argument("--model", choices=("D", "H1", "H2", "H3"), default="H1", help="the model tuned (its learned part)")
+    tu.add_argument("--learner", choices=LEARNERS, default="xgboost", help="the learned part: trees, DNN or LSTM")
+    tu.add_argument("--method", choices=("grid", "bayes"), default="bayes",
+                    help="grid: the paper's Algorithm 1 over the space; bayes: Optuna")
     tu.add_argument("--trials", type=COUNT, default=40, help="configurations to evaluate (over all workers and runs)")
     tu.add_argument("--workers", type=int_in(1, 64), default=1, help="worker processes sharing the study")
     tu.add_argument("--storage", default=None,
@@ -53,11 +54,28 @@ def add_learner_parsers(sub: argparse._SubParsersAction, common: Callable[[argpa
     tu.set_defaults(func=cmd_tune)
 
 
+def check_storage_url(url: str) -> None:
+    """Open the database storage once before the search: a missing database driver or a bad URL is one line
+    here, not a traceback in every worker."""
+    from tasks.lab.tune import storage_for
+
+    try:
+        storage_for(Path("."), url)
+    except ImportError as exc:
+        raise ConfigError(f"--storage {url}: needs the Python package {exc.name or 'for this database'!r}, "
+                          "which is not installed (or use a journal file path)") from None
+    except Exception as exc:  # SQLAlchemy's and the drivers' errors: no common base to name here
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise ConfigError(f"--storage {url}: cannot open the database ({first})") from None
+
+
 def cmd_tune(args: argparse.Namespace) -> int:
     from tasks.lab.tune import tune
 
     if args.storage and "://" not in args.storage and Path(args.storage).is_dir():
         raise ConfigError(f"--storage {args.storage}: a folder; give a journal file path or a database URL")
+    if args.storage and "://" in args.storage:
+        check_storage_url(args.storage)
     out = tune(load_cell_config(args), Path(args.data), Path(args.out), kind=args.model, learner=args.learner,
                method=args.method, trials=args.trials, workers=args.workers, storage=args.storage,
                space_path=Path(args.space) if args.space else None, samples=args.samples, sampler=args.sampler,

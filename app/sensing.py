@@ -69,7 +69,7 @@ def with_guard(cfg: CellConfig, tool: str, cell: OpenCell, robot: RobotModel) ->
     from cell.collision.guard import build_guard
     from cell.sensing.virtual_sensor import load_observer_model
 
-    model = load_observer_model(model_dir, robot)
+    model = load_observer_model(model_dir, robot, cfg.loop.period_s)
     point = np.asarray(cfg.virtual_sensor.wrench_point, float)
 
     def factory(task: str, contact_limit_n: float) -> Any:
@@ -94,7 +94,7 @@ def ensure_virtual_artefacts(cfg: CellConfig, tool: str, kind: str, robot: Robot
                              seed: int | None = None) -> None:
     """The tool's model and calibration must be present and match: built on the spot for a simulated
     or emulated cell (same plant, logged), refused with the command to run for the real one."""
-    from tasks.setup.calibrate import artefacts_missing
+    from cell.sensing.artefacts import artefacts_missing
 
     why = artefacts_missing(cfg, robot, tool)
     simulated = is_simulated(kind)

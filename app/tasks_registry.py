@@ -8,9 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from cell.config import CellConfig, SceneKind, check_home, check_task_force, resolve
+from cell.config import CellConfig, SceneKind, check_home, check_task_force, check_task_speeds
 from cell.control.guarded import check_speeds
-from cell.model.robot import RobotModel, load_robot
+from cell.model.robot import RobotModel
+from cell.model.specs import cell_robot
 from drivers.errors import ConfigError
 
 SWEEP_LIFT_M = 0.1  # the sweeps' centre: the task's start lifted this far (the collection keeps off the table)
@@ -33,6 +34,7 @@ def _build_wipe(cfg: CellConfig, robot: RobotModel, section: str, force_source: 
     where = f"{cfg.source}: tasks.{section}"
     wcfg = load_wipe_config(cfg.tasks.get(section), where)
     check_task_force(cfg, section, wcfg.max_force_n)
+    check_task_speeds(cfg, section, wcfg)
     check_speeds(cfg.collision.guarded, {"approach_speed_mps": wcfg.approach_speed_mps}, wcfg.max_force_n, where)
     try:
         task = WipeTask(wcfg, robot, cfg.scene.table_height, cfg.loop.period_s, np.asarray(cfg.robot.home))
@@ -58,6 +60,7 @@ def _build_peg(cfg: CellConfig, robot: RobotModel, section: str, force_source: s
     where = f"{cfg.source}: tasks.{section}"
     pcfg = load_peg_config(cfg.tasks.get(section), where, force_source)
     check_task_force(cfg, section, pcfg.max_force_n)
+    check_task_speeds(cfg, section, pcfg)
     check_speeds(cfg.collision.guarded, peg_head_on_speeds(pcfg), pcfg.max_force_n, where)
     try:
         task = PegInHoleTask(pcfg, robot, np.asarray(cfg.scene.hole_center, float), cfg.scene.table_height,
@@ -85,7 +88,7 @@ def build_task(name: str, cfg: CellConfig, robot: RobotModel, force_source: str 
 def robot_for(cfg: CellConfig, tool: str) -> RobotModel:
     """The cell's arm with `tool` mounted (its TCP), the config's home checked against it."""
     tcp = cfg.robot.tcp_wipe if tool == "wipe" else cfg.robot.tcp_peg
-    robot = load_robot(resolve(cfg.robot.urdf), tcp, cfg.robot.tool_mass, cfg.robot.tool_com)
+    robot = cell_robot(cfg, tcp)
     check_home(cfg, robot)
     return robot
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from cell.config import CellConfig, resolve
 from cell.control.trajectory import JointMove
-from cell.model.robot import load_robot
+from cell.model.specs import cell_robot
 from sim.cell import make_plant
 
 # "Ordinary motions": random point-to-point moves inside this workspace restriction (the paper's
@@ -34,7 +34,7 @@ def characterise_plant(cfg: CellConfig, seed: int | None = None, n_moves: int = 
       (B_m q'' + C_m q' + f_c sign(q'), per joint) against the measured torque;
     - noise: the torque-sensing noise alone."""
     plant = make_plant(cfg, seed=seed, scene_kind="free")
-    robot = load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
+    robot = cell_robot(cfg)
     rng = np.random.default_rng(plant.profile.seed + 1000)
     m, d = plant.model, plant.data
     lim_v = robot.limits.velocity

@@ -12,13 +12,14 @@ from typing import Any
 
 import mujoco
 import numpy as np
+from tqdm import tqdm
 
 from bench.peg_failures import count_kinds, failure_kind
 from cell.config import CellConfig, resolve
 from cell.control.loop import ControlLoop, Observation, OpenCell
 from cell.control.safety import SafetyMonitor
 from cell.control.signals import raise_if_interrupted
-from cell.data.recorder import Recorder
+from cell.data.recorder import Recorder, read_log
 from cell.model.robot import RobotModel
 from drivers.interfaces import ArmState, Wrench
 from sim.cell import SimCell
@@ -27,8 +28,9 @@ from sim.plant import Penetration, Plant
 from sim.profile import load_profile
 from tasks.base import SETUP_STATES
 from tasks.peg.config import PegConfig
-from tasks.peg.scoring import wrench_abs_errors
+from tasks.peg.scoring import ERROR_KEYS, wrench_abs_errors
 from tasks.peg.task import PegInHoleTask
+from tasks.runner import expect_touches
 
 log = logging.getLogger(__name__)
 
@@ -145,6 +147,7 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
             cell = wrap(cell)
         task = PegInHoleTask(pcfg, robot, nominal, cfg.scene.table_height, cfg.loop.period_s,
                              np.asarray(cfg.robot.home, float))
+        expect_touches(cell.force, task)  # the virtual sensor reads touches as in a run
         # The F/T sensor's readings, wherever it is (beside the virtual sensor, or in the loop): the peak force
         meter = _Tap(cell.ground_truth if cell.ground_truth is not None else cell.force, task)
         truth = meter if cell.ground_truth is not None else None
@@ -196,6 +199,7 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
     rng = np.random.default_rng(seed)
     results: list[Trial] = []
     wall0 = time.perf_counter()
+    bar = tqdm(total=len(only) if only is not None else trials, desc="bench peg-in-hole", unit="trial")
     for i in range(trials):
         offset = rng.uniform(-max_offset_m, max_offset_m, 2)
         tilt = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
@@ -207,6 +211,8 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
                  "ok" if tr.success else "FAILED", tr.insertion_time_s, np.round(np.array(tr.offset_m) * 1e3, 2),
                  tr.tilt_deg, tr.probes, tr.realignments, tr.reason)
         results.append(tr)
+        bar.update()
+    bar.close()
     ok = [r for r in results if r.success]
     times = [r.insertion_time_s for r in ok if r.insertion_time_s is not None]
     err = np.concatenate([r.abs_err for r in results if r.abs_err.size]) if any(r.abs_err.size for r in results) \
@@ -228,9 +234,7 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
         "median_task_time_s": float(np.median([r.task_time_s for r in results])) if results else None,
         "peak_force_n": max((r.peak_force_n for r in results), default=None),
         "peak_force_state": max(results, key=lambda r: r.peak_force_n).peak_state if results else None,
-        "mae_mx_nm": float(err[:, 0].mean()) if err.size else None,
-        "mae_my_nm": float(err[:, 1].mean()) if err.size else None,
-        "mae_fz_n": float(err[:, 2].mean()) if err.size else None,
+        **{key: float(err[:, i].mean()) if err.size else None for i, key in enumerate(ERROR_KEYS)},
         "median_probes": float(np.median([r.probes for r in results])) if results else None,
         "max_axis_error_deg": max((r.axis_error_deg for r in results if r.axis_error_deg is not None),
                                   default=None),
@@ -258,7 +262,6 @@ def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, 
 def _write_trial_rrd(record_dir: Path, robot: RobotModel, force_source: str, summary: dict[str, Any]) -> None:
     """A recorded trial's Rerun copy beside its step log, as `run` keeps one."""
     try:
-        from cell.data.recorder import read_log
         from cell.view.rerun_view import write_rrd
 
         write_rrd(record_dir, read_log(record_dir), robot, {**summary, "force_source": force_source})

@@ -2,7 +2,7 @@
 
 Run: `main.py bench peg-sim [--json]` (or `python -m bench.peg_sim`) -> artifacts/bench/peg-sim.json and
 artifacts/bench/peg-sim.png
-(docs/peg-tight-fits.md has the numbers)."""
+(docs/peg.md has the numbers)."""
 
 from __future__ import annotations
 

@@ -20,9 +20,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from bench.planning_calibration import calibrate, calibrate_trust, load_or_calibrate
 from cell.collision.geometry import CollisionChecker
+from cell.control.signals import raise_if_interrupted
 from cell.model.robot import RobotModel
 from cell.planning.planner import (
     GeometricPath,
@@ -36,8 +38,9 @@ from cell.planning.planner import (
     TorqueFn,
     UniformScalingPlanner,
 )
+from cell.planning.ppo import load_snapshots
 from cell.planning.ppo_planner import PpoPlanner, PpoSettings, load_or_train
-from cell.planning.speed_env import random_waypoints
+from cell.planning.speed_env import WORKSPACE_DEG, obs_dim, random_waypoints
 
 log = logging.getLogger(__name__)
 PLANNER_NAMES = ("uniform", "kinematic", "ppo", "model")
@@ -45,6 +48,11 @@ PAPER_IMPROVEMENT_PCT = {"trajectory_1": 24.7, "trajectory_2": 15.3, "trajectory
 CALIBRATION_PATHS = 5  # random reference paths besides the named ones
 CALIBRATION_SEED = 1000  # their draw: fixed, apart from any bench seed
 MAX_ROUNDS = 4  # runs per planner and path: the first, then tightened re-runs after a torque violation
+# The random paths' class: `speed` (3-5 waypoints across the workspace: mostly at the joint-speed limits),
+# `torque` (one move of joints 1-3, short or medium, wrist held: the motors' torque shapes the timing), or
+# `mixed` (the two alternately).
+PATH_CLASSES = ("speed", "torque", "mixed")
+TORQUE_MOVES_DEG = ((20.0, 70.0), (70.0, 120.0))  # per joint 1-3: a short and a medium move
 
 
 @dataclass
@@ -73,10 +81,33 @@ def inside_box(checker: ToppraPlanner, w: np.ndarray, box: tuple[np.ndarray, np.
     return bool(np.all(tcp >= box[0] + margin) and np.all(tcp <= box[1] - margin))
 
 
+def torque_move(rng: np.random.Generator, medium: bool) -> np.ndarray:
+    """Two waypoints (rad): a start drawn in the workspace, and a move of joints 1-3 by a short (20-70 deg) or
+    medium (70-120 deg) step each, towards the side with more room (shortened to the room there); the wrist
+    holds.  Large inertia, little distance: the torque limits, not the speed limits, set the time."""
+    lo, hi = np.radians(WORKSPACE_DEG[:, 0]), np.radians(WORKSPACE_DEG[:, 1])
+    start = rng.uniform(lo, hi)
+    end = start.copy()
+    a, b = TORQUE_MOVES_DEG[int(medium)]
+    for j in range(3):
+        up, down = hi[j] - start[j], start[j] - lo[j]
+        step = min(np.radians(rng.uniform(a, b)), max(up, down))
+        end[j] = start[j] + (step if up >= down else -step)
+    return np.array([start, end])
+
+
+def draw_path(rng: np.random.Generator, path_class: str, k: int) -> tuple[str, np.ndarray]:
+    """The k-th random path's name prefix and waypoints for the class (`mixed`: speed, torque, speed...)."""
+    kind = path_class if path_class != "mixed" else ("speed", "torque")[k % 2]
+    if kind == "torque":
+        return "torque", torque_move(rng, medium=bool(rng.integers(0, 2)))
+    return "random", random_waypoints(rng, int(rng.integers(3, 6)))
+
+
 def random_paths(checker: ToppraPlanner, count: int, seed: int, box: tuple[np.ndarray, np.ndarray],
-                 prefix: str = "random") -> list[tuple[str, np.ndarray]]:
-    """`count` paths of 3-5 waypoints in the workspace whose spline stays in the joint limits and the cell's
-    workspace box, and collides with nothing."""
+                 prefix: str = "random", path_class: str = "speed") -> list[tuple[str, np.ndarray]]:
+    """`count` paths of the class (`draw_path`) whose spline stays in the joint limits and the cell's workspace
+    box, and collides with nothing; named `prefix_NN` (speed class) or `torque_NN`."""
     rng = np.random.default_rng(seed)
     out: list[tuple[str, np.ndarray]] = []
     tries = 0
@@ -84,13 +115,13 @@ def random_paths(checker: ToppraPlanner, count: int, seed: int, box: tuple[np.nd
         tries += 1
         if tries > 200 * count:
             raise PlanningError(f"bench planning: found only {len(out)} collision-free paths in {tries} draws")
-        w = random_waypoints(rng, int(rng.integers(3, 6)))
+        kind, w = draw_path(rng, path_class, len(out))
         try:
             if not inside_box(checker, w, box):
                 continue
         except PlanningError:
             continue
-        out.append((f"{prefix}_{len(out):02d}", w))
+        out.append((f"{prefix if kind == 'random' else kind}_{len(out):02d}", w))
     return out
 
 
@@ -123,7 +154,7 @@ def kinematic_limits(s: PlanningSetup) -> dict[str, Any]:
         return KinematicPlanner(s.robot, s.torque_fn, replace(s.pcfg, acceleration_limits=acc.tolist()), s.collisions)
 
     key = {"arm": s.arm_identity, "limit_fraction": limit, "velocity_fraction": s.pcfg.velocity_fraction,
-           "guards": list(s.pcfg.acceleration_limits), "smoothing_s": s.pcfg.smoothing_s}
+           "guards": list(s.pcfg.acceleration_limits), "smoothing_s": s.pcfg.smoothing_s}  # as app/commands_plan.py
     out = load_or_calibrate(s.artefacts / "kinematic.json", key,
                             lambda: calibrate(make, s.robot, ref, s.calibration_run, limit))
     out["acceleration_limits"] = np.minimum(out["acceleration_limits"], s.pcfg.acceleration_limits).tolist()
@@ -145,6 +176,7 @@ def run_once(planner: Planner, w: np.ndarray, s: PlanningSetup, scale: np.ndarra
     except PlanningError as exc:
         return {"outcome": "plan_failed", "reason": str(exc), "torque_violation": False}
     res = s.run(traj)
+    raise_if_interrupted(res["outcome"])  # Ctrl+C / SIGTERM ends the bench, not just this plan's run
     peak = np.asarray(res["peak_ratio"], float)
     vlim = s.robot.limits.velocity * s.pcfg.velocity_fraction
     # the share of the motion some joint spends near (within 10 % of) its speed limit: little to gain there
@@ -183,6 +215,22 @@ def speed_limit_time(path: GeometricPath, vlim: np.ndarray, samples: int = 2000)
     return float(np.sum(np.diff(s) / (0.5 * (cap[:-1] + cap[1:]))))
 
 
+def gap_closed(t_kinematic: float, t_model: float, t_speed_limit: float) -> float:
+    """(T_kinematic - T_model) / (T_kinematic - T_speed_limit): the share of the kinematic plan's time above the
+    speed-limit bound that ours removes (1 at the bound, 0 no faster than kinematic, < 0 slower); NaN where a
+    time is missing or the kinematic plan is already at the bound."""
+    span = t_kinematic - t_speed_limit
+    if not (np.isfinite(t_kinematic) and np.isfinite(t_model) and np.isfinite(t_speed_limit)) or span <= 1e-9:
+        return float("nan")
+    return (t_kinematic - t_model) / span
+
+
+def nanmedian(x: Any) -> float | None:
+    """The median of the finite values, None when there are none (JSON has no NaN)."""
+    a = np.asarray(x, float)
+    return float(np.median(a[np.isfinite(a)])) if np.any(np.isfinite(a)) else None
+
+
 def pct(a: float, b: float) -> float:
     """How much shorter a is than b, in percent of b."""
     return 100.0 * (1.0 - a / b)
@@ -211,6 +259,17 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "speed_bound_share_median": {p: float(np.nanmedian([r[p].get("speed_bound_share", np.nan) for r in rows]))
                                      for p in PLANNER_NAMES},
     }
+    speed = np.array([r.get("speed_limit_only_s", np.nan) for r in rows], float)
+    gaps = np.array([gap_closed(k, m, v) for k, m, v in zip(dur["kinematic"], dur["model"], speed, strict=True)])
+    named_rows = np.array([r["path"] in PAPER_IMPROVEMENT_PCT for r in rows])
+    out["gap_closed"] = {r["path"]: None if not np.isfinite(g) else round(float(g), 4) for r, g in zip(rows, gaps,
+                                                                                                         strict=True)}
+    out["median_gap_closed"] = {"random": nanmedian(gaps[~named_rows]), "named": nanmedian(gaps[named_rows])}
+    # the same medians as `median_time_ratio`, over the random paths (the chosen class) and the named ones apart
+    out["median_time_ratio_by_group"] = {
+        group: {p: nanmedian(dur[p][sel] / dur["kinematic"][sel]) for p in PLANNER_NAMES}
+        | {"speed_limit_only": nanmedian(speed[sel] / dur["kinematic"][sel])}
+        for group, sel in (("random", ~named_rows), ("named", named_rows))}
     saving = np.array([pct(m, p) for m, p in zip(dur["model"], dur["ppo"], strict=True)])
     both = np.isfinite(saving)  # the paths where both have a run within the limits
     out["model_vs_ppo"] = {"paths_model_not_slower": int(np.sum(saving[both] >= -0.05)), "paths": int(both.sum()),
@@ -253,7 +312,55 @@ def paper_setting(s: PlanningSetup, settings: PpoSettings, scale: np.ndarray,
     return out
 
 
-def bench_planning(s: PlanningSetup, count: int, seed: int, settings: PpoSettings) -> dict[str, Any]:
+def ppo_curve(s: PlanningSetup, settings: PpoSettings, policy_dir: Path, final_updates: int, scale: np.ndarray,
+              rows: list[dict[str, Any]], paths: list[tuple[str, np.ndarray]]) -> list[dict[str, Any]]:
+    """PPO's time against its training budget: the policy kept after each snapshot's update count (and the final
+    one, from the rows), planned on the bench's paths at the same setting, median planned duration over the
+    kinematic baseline's planned one (plans only: the plant-validated figure is the final policy's)."""
+    kin = np.array([r["kinematic"].get("duration_s", np.nan) for r in rows], float)
+    model = np.array([r["model"].get("duration_s", np.nan) for r in rows], float)
+    out = []
+    snaps = load_snapshots(policy_dir, obs_dim(settings.env, s.robot.n), settings.ppo.hidden)
+    for updates, params in sorted(snaps.items()):
+        planner = PpoPlanner(s.robot, s.torque_fn, s.pcfg, params, settings, None, s.terms)
+        t = []
+        for _, w in paths:
+            try:
+                t.append(planner.plan(w, scale).duration)
+            except PlanningError:
+                t.append(np.nan)
+        out.append({"updates": updates, "median_planned_ratio": nanmedian(np.array(t) / kin)})
+    final = np.array([r["ppo"].get("duration_s", np.nan) for r in rows], float)
+    out.append({"updates": final_updates, "median_planned_ratio": nanmedian(final / kin)})
+    for point in out:
+        point["model_median_planned_ratio"] = nanmedian(model / kin)
+    return out
+
+
+def plot_ppo_curve(curve: list[dict[str, Any]], png: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [p["updates"] for p in curve]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot(x, [p["median_planned_ratio"] for p in curve], "o-", label="PPO")
+    ax.axhline(curve[-1]["model_median_planned_ratio"], color="C2", ls="--", label="ours (model)")
+    ax.axhline(1.0, color="grey", ls=":", label="kinematic")
+    ax.set_xscale("log")
+    ax.set_xlabel("PPO updates (x 32 paths x 30 knots)")
+    ax.set_ylabel("planned time / kinematic (median)")
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
+def bench_planning(s: PlanningSetup, count: int, seed: int, settings: PpoSettings,
+                   path_class: str = "speed") -> dict[str, Any]:
     """Calibrate (or load) the per-arm settings, train (or load) the policy, then plan and run every path."""
     kin = kinematic_limits(s)
     trust = model_trust(s)
@@ -263,10 +370,11 @@ def bench_planning(s: PlanningSetup, count: int, seed: int, settings: PpoSetting
     chosen = planners(s, kin["acceleration_limits"], policy, settings)
     checker = chosen["model"]
     assert isinstance(checker, ToppraPlanner)
-    paths = [(n, np.radians(w)) for n, w in s.named.items()] + random_paths(checker, count, seed, s.workspace)
+    paths = [(n, np.radians(w)) for n, w in s.named.items()] + random_paths(checker, count, seed, s.workspace,
+                                                                             path_class=path_class)
     rows = []
     vlim = s.robot.limits.velocity * s.pcfg.velocity_fraction
-    for name, w in paths:
+    for name, w in tqdm(paths, desc="bench planning", unit="path"):
         row: dict[str, Any] = {"path": name, "waypoints_deg": np.degrees(w).round(2).tolist(),
                                "speed_limit_only_s": speed_limit_time(GeometricPath(w), vlim)}
         for p in PLANNER_NAMES:
@@ -278,8 +386,12 @@ def bench_planning(s: PlanningSetup, count: int, seed: int, settings: PpoSetting
         rows.append(row)
     out = summarise(rows)
     out["paper_setting"] = paper_setting(s, settings, scale, rows)
+    out["ppo_curve"] = ppo_curve(s, settings, policy_dir, settings.ppo.updates, scale, rows, paths)
+    png = s.artefacts / f"ppo-curve-{path_class}-seed{seed}.png"
+    plot_ppo_curve(out["ppo_curve"], png, f"PPO against its budget: {path_class} paths, seed {seed}")
+    out["ppo_curve_png"] = str(png)
     out.update({
-        "model": s.model_name, "seed": seed, "paths": len(rows), "random_paths": count,
+        "model": s.model_name, "seed": seed, "paths": len(rows), "random_paths": count, "paths_class": path_class,
         "ppo_training_s": meta["training_s"], "ppo_trained_now": not meta.get("loaded", False),
         "ppo_env_steps": meta["env_steps"],
         "kinematic_acceleration_limits": kin["acceleration_limits"], "kinematic_fraction": kin["fraction"],

@@ -21,7 +21,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
+from cell.control.signals import raise_if_interrupted
+from cell.data.atomic import write_atomic
 from cell.model.robot import RobotModel
 from cell.planning.planner import KinematicPlanner, Planner, PlanningError, TimedTrajectory
 
@@ -54,6 +57,8 @@ def reference_ok(plan: Callable[[np.ndarray], TimedTrajectory], ref: list[tuple[
             rows.append({"path": name, "outcome": f"plan_failed: {exc}"})
             return False, rows
         res = run(traj)
+        # An interrupted reference run looks like one over the limit: bisecting on would store a low fraction.
+        raise_if_interrupted(res["outcome"])
         peak = float(np.nanmax(res["peak_ratio"]))
         rows.append({"path": name, "duration_s": traj.duration, "outcome": res["outcome"], "peak_ratio": peak})
         if res["outcome"] != "done" or not peak <= limit_fraction:
@@ -67,14 +72,19 @@ def bisect_fraction(plan_at: Callable[[float], Callable[[np.ndarray], TimedTraje
     """The largest fraction in (0, hi] (to `steps` log-bisections) whose plans `plan_at(f)` keep every reference run
     within the limit; `lo` is halved until it does."""
     checks: list[dict[str, Any]] = []
+    bar = tqdm(total=steps + 2, desc=f"{what} calibration", unit="check")  # hi, lo, then the bisections
 
     def ok(f: float) -> bool:
         good, rows = reference_ok(plan_at(f), ref, run, limit_fraction)
         checks.append({"fraction": f, "ok": good, "runs": rows})
+        if len(checks) > bar.total:
+            bar.total = len(checks)
+        bar.update()
         log.info("%s calibration: fraction %.4f -> %s", what, f, "within the limits" if good else rows[-1])
         return good
 
     if ok(hi):
+        bar.close()
         return hi, checks
     while not ok(lo):
         hi, lo = lo, lo / 2
@@ -83,6 +93,7 @@ def bisect_fraction(plan_at: Callable[[float], Callable[[np.ndarray], TimedTraje
     for _ in range(steps):
         mid = float(np.sqrt(lo * hi))
         lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+    bar.close()
     return lo, checks
 
 
@@ -111,7 +122,8 @@ def calibrate_trust(planner: Planner, ref: list[tuple[str, np.ndarray]], run: Ru
 
 
 def load_or_calibrate(path: Path, key: dict[str, Any], calibrate_now: Callable[[], dict[str, Any]]) -> dict[str, Any]:
-    """The stored calibration when it was made for `key` (arm, model, limits), else a new one, stored."""
+    """The stored calibration when it was made for `key` (arm, model, limits), else a new one, stored only once it
+    completed (an interrupt raises out of `calibrate_now` first), in one atomic write."""
     if path.exists():
         stored = json.loads(path.read_text(encoding="utf-8"))
         if stored.get("key") == key:
@@ -121,6 +133,6 @@ def load_or_calibrate(path: Path, key: dict[str, Any], calibrate_now: Callable[[
     log.info("calibrating on the plant (once per arm and model; stored in %s)", path)
     out = {"key": key, **calibrate_now()}
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=1), encoding="utf-8")
+    write_atomic(path, json.dumps(out, indent=1))
     out["loaded"] = False
     return out

@@ -3,18 +3,20 @@
 from __future__ import annotations
 
 import math
+import os
 import statistics
 import time
 from typing import Any
 
 import numpy as np
 
-from cell.config import CellConfig, resolve
+from cell.config import CellConfig
 from cell.control.loop import ControlLoop
 from cell.control.safety import SafetyMonitor
-from cell.model.robot import load_robot
+from cell.control.signals import raise_if_interrupted
+from cell.model.specs import cell_robot
 from drivers.interfaces import JointLimits
-from drivers.tm5.contract import TM5ModbusConfig
+from drivers.tm5.config import TM5ModbusConfig
 from drivers.tm5.modbus import TM5ModbusArm
 from drivers.tm5.registers import N_JOINTS
 from drivers.wacoh.config import WacohConfig
@@ -26,23 +28,49 @@ from sim.wacoh_emulator import WacohEmulator
 from tasks.wipe import WipeTask, load_wipe_config
 
 
+def machine_load() -> list[float]:
+    """The 1, 5 and 15 minute load averages (what else the cores were doing: wall times depend on it)."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:  # not available on this platform
+        return []
+
+
 def bench_sim(cfg: CellConfig, seed: int | None = None, repeats: int = 2) -> dict[str, Any]:
     """Runs the whole wiping task (no recording) `repeats` times; RTF = simulated / wall seconds."""
 
-    robot = load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
+    bench_t0 = time.perf_counter()
+    load_before = machine_load()
+    robot = cell_robot(cfg)
     wcfg = load_wipe_config(cfg.tasks.get("wipe"), f"{cfg.source}: tasks.wipe")
     sim_s, wall_s, outcomes, compute = 0.0, 0.0, [], []
     plant_step_s = 0.0
+    in_task = {"plant_s": 0.0, "periods": 0}
+    rtfs = []
+    cpu_s = 0.0
     for _ in range(repeats):
         holder = make_sim_cell(cfg, robot.limits, seed=seed, scene_kind="table")
+        step = holder.plant.step
+
+        def timed_step(step: Any = step) -> None:
+            t0 = time.perf_counter()
+            step()
+            in_task["plant_s"] += time.perf_counter() - t0
+            in_task["periods"] += 1
+
+        holder.plant.step = timed_step  # type: ignore[method-assign]
         cell = holder.open()
         task = WipeTask(wcfg, robot, cfg.scene.table_height, cfg.loop.period_s, np.asarray(cfg.robot.home))
         loop = ControlLoop(cell.arm, cell.force, task, SafetyMonitor(cfg.safety, robot, cfg.loop.period_s),
                            cell.ticker, None, cfg.loop.period_s, wcfg.max_duration_s)
+        cpu0 = time.process_time()
         result = loop.run()
+        cpu_s += time.process_time() - cpu0
         holder.close()
+        raise_if_interrupted(result.outcome)  # a cut-short run would report a real-time factor of part of it
         sim_s += result.sim_time_s
         wall_s += result.wall_time_s
+        rtfs.append(result.sim_time_s / result.wall_time_s)
         outcomes.append(result.outcome)
         compute.append(result.timing.get("compute_ms_p50", float("nan")))
     # The plant alone, for the split between physics and controller.
@@ -58,8 +86,19 @@ def bench_sim(cfg: CellConfig, seed: int | None = None, repeats: int = 2) -> dic
         "outcomes": outcomes,
         "controller_compute_ms_p50": float(np.mean(compute)),
         "plant_step_ms": plant_step_s * 1e3,
+        # The plant's share inside the task (contact, friction, the wiping head), per control period.
+        "plant_in_task_ms": 1e3 * in_task["plant_s"] / max(1, in_task["periods"]),
+        "real_time_factor_per_repeat": rtfs,
+        # Simulated seconds per CPU second of this process: what the wall-clock figure would be with a core
+        # to itself (on a shared machine the wall clock also counts other processes' turns).
+        "real_time_factor_cpu": sim_s / cpu_s if cpu_s > 0 else float("nan"),
+        "cpu_seconds": cpu_s,
         "control_period_ms": cfg.loop.period_s * 1e3,
         "physics_substeps": holder.plant.substeps,
+        "bench_wall_s": time.perf_counter() - bench_t0,
+        "load_avg_before": load_before,
+        "load_avg_after": machine_load(),
+        "cpu_count": os.cpu_count(),
     }
 
 
@@ -115,4 +154,8 @@ def bench_serial(n: int = 500) -> dict[str, float | int]:
 
 def bench_drivers(n: int = 500) -> dict[str, Any]:
     """`main.py bench drivers`: one Modbus state read + target write, and one serial `R` to a parsed wrench."""
-    return {**bench_modbus(n), **bench_serial(n)}
+    t0 = time.perf_counter()
+    load_before = machine_load()
+    out: dict[str, Any] = {**bench_modbus(n), **bench_serial(n)}
+    return {**out, "bench_wall_s": time.perf_counter() - t0, "load_avg_before": load_before,
+            "load_avg_after": machine_load()}

@@ -17,7 +17,7 @@ log = logging.getLogger(__name__)
 WRIST_RANGE_RAD = np.radians([30.0, 30.0, 30.0, 100.0, 100.0, 150.0])  # +- about home: the tool turned widely
 SETTLE_STEPS = 40  # 0.32 s at 125 Hz: the servo and the pad spring at rest
 MEAN_STEPS = 25  # averaged readings per pose (the sensor's noise down by 5)
-FREE_FORCE_TARGET_N = 0.5  # issue 21: |F| in free space after compensation, over 9 random orientations
+FREE_FORCE_TARGET_N = 0.5  # target: |F| in free space after compensation, over 9 random orientations
 
 
 def random_postures(robot: RobotModel, home: np.ndarray, n: int, rng: np.random.Generator) -> list[np.ndarray]:

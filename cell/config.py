@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -21,6 +21,33 @@ def resolve(path: str, base: Path = CONFIG_DIR) -> Path:
     """Config paths are relative to config/ unless absolute."""
     p = Path(path)
     return p if p.is_absolute() else base / p
+
+
+MAX_BASE_DEPTH = 4  # `base:` chains longer than this are a mistake (or a loop)
+
+
+def read_layered_yaml(path: Path, _depth: int = 0) -> dict[str, Any]:
+    """A YAML mapping that may name `base: OTHER.yaml` (relative to its own folder): the base is read
+    first and this file's keys laid over it, mappings merged key by key, any other value replaced.
+    So a variant (another arm protocol, another loop period) states only what differs."""
+    data = read_yaml(path)
+    if not isinstance(data, dict) or "base" not in data:
+        return data
+    base = data.pop("base")
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(f"{path}: base must name a YAML file, got {base!r}")
+    if _depth >= MAX_BASE_DEPTH:
+        raise ConfigError(f"{path}: base: more than {MAX_BASE_DEPTH} files chained (a loop?)")
+    under = read_layered_yaml(resolve(base, Path(path).resolve().parent), _depth + 1)
+    return _lay_over(under, data)
+
+
+def _lay_over(under: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(under)
+    for key, value in over.items():
+        out[key] = _lay_over(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
+            else value
+    return out
 
 
 @dataclass
@@ -83,6 +110,10 @@ MAX_TOOL_TORQUE_NM = 10.0  # the shipped limit; the sensor is rated 4 N·m, the 
 MAX_TCP_SPEED = 1.0  # m/s: collaborative operation (the tasks command under 0.1)
 WORKSPACE_REACH_M = 1.0  # the TM5-700 reaches 0.7 m from its shoulder
 MAX_INVALID_CYCLES = 10  # sensor readings missing in a row before a stop: 80 ms at 8 ms
+# Sane ranges of a task's motion settings (check_task_motion): the tasks' paths accelerate at 0.15 m/s^2
+# and move centimetres; a value past these is a typo, not a task.
+MAX_TASK_ACCEL = 2.0  # m/s^2
+MAX_TASK_DISTANCE_M = 0.5  # m: half the workspace box
 
 
 def _within(value: float, lo: float, hi: float, where: str, unit: str) -> None:
@@ -162,8 +193,8 @@ class CalibrationConfig:
     # At rest, no load, before the free-space re-bias.  Why this long: after a move the joints creep
     # (tenths of a mrad/s) for about a second while the servo's integral settles, and the hybrid model
     # reads Coulomb friction from that velocity's sign; a zero taken while they still creep is off by
-    # ~0.1 N·m in My once they have stopped (measured: held-out My MAE 0.20 -> 0.12 N·m, mean of 5
-    # plant seeds, going from 0.8 s to 1.2-2 s).  Must exceed virtual_sensor.rebias_window_s.
+    # ~0.1 N·m in My once they have stopped (held-out My MAE 0.20 -> 0.12 N·m going from 0.8 s to
+    # 1.2-2 s, docs/virtual-sensor-settings.md).  Must exceed virtual_sensor.rebias_window_s.
     settle_s: float = 1.5
     loads: int = 10  # load changes per posture
     load_s: float = 1.5  # each load: ramped in (0.25 s), then held; scored over its last 40 %
@@ -202,6 +233,8 @@ class ToolSensorSettings:
     mapping: Literal["jacobian", "learned", "contact"] | None = None
     free_moment_nm: float | None = None
     measurement_noise: Literal["calibrated", "model"] | None = None
+    touch_gain: float | None = None
+    touch_band_n: float | None = None
 
 
 @dataclass
@@ -241,6 +274,12 @@ class VirtualSensorConfig:
     # friction holds some unknown torque within its break-away band, which a zero taken there carries
     # into the motion that follows (see config/cell.yaml for the tool that goes without).
     zero_at_tare: bool = True
+    # While the task expects a touch (its `touch_states`), a momentum observer of this bandwidth [1/s] runs
+    # beside the configured one, and its force's departure from the configured reading beyond touch_band_n
+    # [N] is added to it: a stiff touch rings for a few periods, which the steady observer filters away
+    # (it read 5 N of a 38 N touch).  0: off.
+    touch_gain: float = 0.0
+    touch_band_n: float = 4.0
     # The contact map's prior standard deviation of the moment a force at the TCP does not explain [N·m].
     free_moment_nm: float = 0.3
     wrench_point: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.035])  # flange frame: the F/T face
@@ -252,6 +291,8 @@ class VirtualSensorConfig:
         require_len(self.process_noise_nm, 6, f"{where}.process_noise_nm")
         require(all(v > 0 for v in self.process_noise_nm), f"{where}.process_noise_nm", "must be > 0")
         require(self.momentum_gain > 0, f"{where}.momentum_gain", "must be > 0 (1/s)")
+        require(0 <= self.touch_gain <= 1000, f"{where}.touch_gain", "must lie in [0, 1000] 1/s (0: off)")
+        require(self.touch_band_n >= 0, f"{where}.touch_band_n", "must be >= 0 (N)")
         require(self.innovation_gate >= 0, f"{where}.innovation_gate", "must be >= 0 (0: off)")
         require(self.rebias_window_s > 0, f"{where}.rebias_window_s", "must be > 0")
         require(self.free_moment_nm > 0, f"{where}.free_moment_nm", f"must be > 0 (N·m), got {self.free_moment_nm}")
@@ -286,6 +327,7 @@ class DetectorSettings:
 
     observer_gain: float = 100.0  # 1/s: bandwidth of the residual (time constant 1 / gain)
     sigma_factor: float = 6.0  # thresholds: this many model sigmas ...
+    rest_sigma_factor: float | None = None  # ... toward this many at rest (below stick_speed); None: sigma_factor
     floor_nm: list[float] = field(default_factory=lambda: [1.5, 1.5, 1.5, 0.6, 0.6, 0.6])  # ... plus this
     payload_uncertainty_kg: float = 0.5  # payload error the thresholds tolerate
     inertia_uncertainty: float = 0.5  # relative error of the inertial torque M(q) q''_cmd the thresholds allow
@@ -305,6 +347,8 @@ class DetectorSettings:
     def validate(self, where: str) -> None:
         require(0 < self.observer_gain <= 1000, f"{where}.observer_gain", "must lie in (0, 1000] 1/s")
         require(self.sigma_factor >= 0, f"{where}.sigma_factor", "must be >= 0")
+        require(self.rest_sigma_factor is None or 0 <= self.rest_sigma_factor <= self.sigma_factor,
+                f"{where}.rest_sigma_factor", "must lie in [0, sigma_factor]")
         require(all(v > 0 for v in self.floor_nm), f"{where}.floor_nm", "must all be > 0 N·m")
         require(0 <= self.payload_uncertainty_kg <= 6, f"{where}.payload_uncertainty_kg", "must lie in [0, 6] kg")
         require(self.coverage_min_count >= 0, f"{where}.coverage_min_count", "must be >= 0")
@@ -389,7 +433,7 @@ REQUIRED_SECTIONS = ("robot", "scene", "loop", "safety", "devices", "plant", "vi
 
 def load_config(path: Path | None = None) -> CellConfig:
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    data = read_yaml(path)
+    data = read_layered_yaml(path)
     if not data:
         raise ConfigError(f"{path}: the file is empty: a cell config needs its sections (start from {DEFAULT_CONFIG})")
     missing = [k for k in REQUIRED_SECTIONS if k not in data]
@@ -409,6 +453,29 @@ def check_home(cfg: CellConfig, robot: Any) -> None:
     for j, (q, lo, hi) in enumerate(zip(cfg.robot.home, lim.lower, lim.upper, strict=True)):
         require(lo <= q <= hi, f"{cfg.source}: robot.home[{j}]",
                 f"({q:g} rad) must lie within joint {j + 1}'s limits [{lo:.4g}, {hi:.4g}] rad")
+
+
+def check_task_motion(settings: Any, where: str, max_speed: float = MAX_TCP_SPEED,
+                      limit: str = "the highest TCP speed a cell allows") -> None:
+    """A task's settings dataclass: every speed (`*_mps`) at most `max_speed` (`limit` names it), every
+    acceleration (`*_mps2`) in (0, MAX_TASK_ACCEL] and every distance (`*_m`) in [0, MAX_TASK_DISTANCE_M]."""
+    for f in fields(settings):
+        value = getattr(settings, f.name)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            continue
+        name = f"{where}.{f.name}"
+        if f.name.endswith("_mps"):
+            require(value <= max_speed, name, f"({value:g} m/s) must not exceed {limit} ({max_speed:g} m/s)")
+        elif f.name.endswith("_mps2"):
+            require(0 < value <= MAX_TASK_ACCEL, name, f"must lie in (0, {MAX_TASK_ACCEL:g}] m/s^2, got {value:g}")
+        elif f.name.endswith("_m"):
+            require(0 <= value <= MAX_TASK_DISTANCE_M, name,
+                    f"must lie in [0, {MAX_TASK_DISTANCE_M:g}] m, got {value:g}")
+
+
+def check_task_speeds(cfg: CellConfig, task: str, settings: Any) -> None:
+    """A task's speeds within the cell's TCP speed limit: the task must never command what safety stops."""
+    check_task_motion(settings, f"{cfg.source}: tasks.{task}", cfg.safety.max_tcp_speed, "safety.max_tcp_speed")
 
 
 def check_task_force(cfg: CellConfig, task: str, max_force_n: float) -> None:

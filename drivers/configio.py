@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import types
 import typing
 from pathlib import Path
@@ -19,18 +20,31 @@ T = TypeVar("T")
 
 
 MAX_YAML_BYTES = 1 << 20  # a config or manifest is a few kB; anything this large is not one
+MAX_YAML_DEPTH = 32  # the deepest shipped file nests 4 levels; deeper input would exhaust the parser's stack
+
+# YAML 1.2's float (PyYAML resolves YAML 1.1, where `1.0e6` and `1e6` are strings: an exponent needs a sign
+# there).  Checked after the 1.1 int and float forms, so what they read is unchanged.
+_YAML12_FLOAT = re.compile(r"^[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?$")
 
 
 class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that refuses duplicate keys (YAML lets the last one win silently) and aliases (a
-    few nested aliases expand to billions of nodes in whatever walks the result)."""
+    """SafeLoader that refuses duplicate keys (YAML lets the last one win silently), aliases (a few
+    nested aliases expand to billions of nodes in whatever walks the result) and nesting deeper than
+    MAX_YAML_DEPTH, and reads numbers as YAML 1.2 does."""
 
     def compose_node(self, parent: Any, index: Any) -> Any:
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
             raise yaml.constructor.ConstructorError(
                 None, None, "aliases (*name) are not supported in this file", event.start_mark)
-        return super().compose_node(parent, index)
+        self._depth = getattr(self, "_depth", 0) + 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", self.peek_event().start_mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
 
     def construct_mapping(self, node: Any, deep: bool = False) -> Any:
         seen: set[Any] = set()
@@ -41,6 +55,9 @@ class _StrictLoader(yaml.SafeLoader):
                     None, None, f"duplicate key '{key}' (the same key twice in one mapping)", key_node.start_mark)
             seen.add(key)
         return super().construct_mapping(node, deep)
+
+
+_StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _YAML12_FLOAT, list("-+.0123456789"))
 
 
 def read_yaml(path: Path) -> dict[str, Any]:
@@ -59,6 +76,8 @@ def read_yaml(path: Path) -> dict[str, Any]:
         raise ConfigError(f"{path}: line {line} is not UTF-8 text (byte 0x{raw[exc.start]:02x})") from None
     try:
         data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+    except RecursionError:  # the depth limit's backstop (the scanner nests too, for flow collections)
+        raise ConfigError(f"{path}: nested too deeply to be a YAML file here") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""
@@ -232,3 +251,41 @@ def read_versioned_json(doc_path: Path, fmt: str, version: int, what: str, missi
     if int(doc.get("format_version", 0)) > version:
         raise DataError(f"{doc_path}: format_version {doc['format_version']} is newer than this build reads")
     return doc
+
+
+# ------------------------------------------------------------------------------------ bounded values
+# Validators for a `validate(self, where)`: each returns the value or raises a one-line ConfigError naming
+# `where`.  bool is an int to Python: refused everywhere, so `true` never passes as 1.
+def describe(value: Any) -> str:
+    """`value` as an error message shows it (repr, at most 60 characters)."""
+    return _describe(value)
+
+
+def number_in(value: Any, where: str, low: float, high: float, unit: str = "") -> float:
+    """A finite number within [low, high] (`unit` is shown after the bounds, e.g. " s")."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (
+            math.isfinite(value) and low <= value <= high):
+        raise ConfigError(f"{where} must be a number from {low:g} to {high:g}{unit}, got {_describe(value)}")
+    return float(value)
+
+
+def integer_in(value: Any, where: str, low: int, high: int) -> int:
+    """An integer within [low, high]."""
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise ConfigError(f"{where} must be an integer from {low} to {high}, got {_describe(value)}")
+    return value
+
+
+def one_of(value: Any, where: str, options: tuple[Any, ...]) -> Any:
+    """One of `options`."""
+    if isinstance(value, bool) or value not in options:
+        raise ConfigError(f"{where} must be one of {list(options)}, got {_describe(value)}")
+    return value
+
+
+def number_near(value: Any, where: str, reference: float, rel_tol: float) -> float:
+    """A finite number within `rel_tol` (relative) of `reference`."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (
+            math.isfinite(value) and abs(value - reference) <= rel_tol * abs(reference)):
+        raise ConfigError(f"{where} must be within {rel_tol * 100:g}% of {reference:g}, got {_describe(value)}")
+    return float(value)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cell.control.loop import WallTicker
 from drivers.interfaces import Arm, ArmState, ForceSensor, JointLimits, Wrench
 from sim.plant import Plant
 
@@ -74,7 +75,6 @@ class PacedTicker:
     """Advances the plant one period per cycle and sleeps to the wall clock: the sim at real speed."""
 
     def __init__(self, plant: Plant) -> None:
-        from cell.control.loop import WallTicker
 
         self.plant = plant
         self.wall = WallTicker(plant.dt)

@@ -18,7 +18,7 @@ from sim.profile import LINKS, PlantProfile
 HOLE_WALL_SEGMENTS = 32
 # Peg-on-fixture contacts (the fixture's geoms carry priority: these win over the peg's own, the same today).
 # Time constant at twice the 1 ms physics step (MuJoCo's stability floor); at the task's 15 N push a wedged
-# peg penetrates 2.5-4 um, within a tenth of a 0.05 mm fit; at 80 N 7-12 um (docs/peg-tight-fits.md).  A
+# peg penetrates 2.5-4 um, within a tenth of a 0.05 mm fit; at 80 N 7-12 um (docs/peg.md).  A
 # stiffer impedance (0.99) halves that but raised the survey's touch forces past the task's moment limit.
 FIT_SOLREF = "0.002 1"
 FIT_SOLIMP = "0.95 0.99 0.0005"

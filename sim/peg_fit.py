@@ -11,7 +11,7 @@ import numpy as np
 
 from cell.config import SceneConfig
 from sim import mjcf
-from sim.plant import deepest_contact, failed_contact
+from sim.contacts import deepest_contact, failed_contact
 from sim.profile import ToolProfile
 
 PHYSICS_DT = 0.001  # the plant's physics step (sim/profile.py physics_dt_s)

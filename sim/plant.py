@@ -6,6 +6,7 @@ import collections
 import collections.abc
 import dataclasses
 import logging
+import math
 from pathlib import Path
 
 import mujoco
@@ -13,6 +14,7 @@ import numpy as np
 
 from cell.config import SceneConfig
 from drivers.interfaces import ArmState, ArmStatus
+from sim.contacts import CONVEX_COLLIDER_GEOMS, RECOLLIDE_TOLERANCE, Penetration, failed_contact
 from sim.mjcf import BuiltScene, build_mjcf
 from sim.profile import PlantProfile
 
@@ -20,73 +22,6 @@ log = logging.getLogger(__name__)
 
 # What a physics step restores to be taken again (everything mj_step reads, the solver's warm start too).
 STEP_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
-# A contact deeper than this is a failed collision detection (_physics_step): the stiff contacts here
-# stay within 0.05 mm (99.99 % of contact steps under 0.013 mm, 11 bench trials, 38k contact steps).
-MAX_CONTACT_DEPTH_M = 1e-4
-RECOLLIDE_TOLERANCE = 1e-10
-BORE_MARGIN_M = 1e-4  # a side contact this far below the hole's mouth is in the bore (Penetration.bore)
-
-
-def deepest_contact(data: mujoco.MjData) -> float:
-    """The deepest penetration [m] among the current contacts (0 without contact)."""
-    return -float(np.min(data.contact.dist[:data.ncon])) if data.ncon else 0.0
-
-
-@dataclasses.dataclass
-class Penetration:
-    """The deepest contact penetration [m] over the physics steps so far: of any contact; of side contacts
-    (normal more than 60 deg from vertical: on a wall, not a touch on a top face or the table); and of side
-    contacts more than `BORE_MARGIN_M` below the hole's mouth, where a contact's give widens the fit."""
-
-    any: float = 0.0
-    side: float = 0.0
-    bore: float = 0.0
-
-    def update(self, data: mujoco.MjData, mouth_site: int = -1) -> None:
-        n = data.ncon
-        if n == 0:
-            return
-        self.any = max(self.any, deepest_contact(data))
-        side = np.abs(data.contact.frame[:n, 2]) < 0.5
-        if not side.any():
-            return
-        depth = -data.contact.dist[:n]
-        self.side = max(self.side, float(depth[side].max()))
-        if mouth_site >= 0:
-            axis = data.site_xmat[mouth_site].reshape(3, 3)[:, 2]  # out of the hole
-            below = (data.site_xpos[mouth_site] - data.contact.pos[:n]) @ axis > BORE_MARGIN_M
-            if (side & below).any():
-                self.bore = max(self.bore, float(depth[side & below].max()))
-
-    def as_um(self) -> dict[str, float]:
-        """The three depths in micrometres, under the bench's keys."""
-        return {"max_penetration_um": self.any * 1e6, "max_side_penetration_um": self.side * 1e6,
-                "max_bore_penetration_um": self.bore * 1e6}
-
-
-def failed_contact(model: mujoco.MjModel, data: mujoco.MjData) -> str | None:
-    """Why the collider's contacts of the step just taken cannot be right, or None.
-
-    Every geom here is convex, so at a true contact the normal (from geom1 to geom2) supports both: each
-    geom's centre lies on its own side of the contact point, to within the penetration.  Two failures of
-    MuJoCo's convex collider are caught: a contact far deeper than the bodies' motion allows, and a normal
-    pointing the wrong way (a peg on the bore's wall got a +y normal where the wall faces -y: its 133 N
-    and its neighbour's opposite 150 N squeezed the peg, and their friction read 87 N at the F/T sensor)."""
-    n = data.ncon
-    if n == 0:
-        return None
-    c = data.contact
-    depth = deepest_contact(data)
-    if depth > MAX_CONTACT_DEPTH_M:
-        return f"a {depth * 1e3:.2f} mm deep contact"
-    normal, pos, geoms = c.frame[:n, :3], c.pos[:n], c.geom[:n]
-    own1 = np.einsum("ij,ij->i", data.geom_xpos[geoms[:, 0]] - pos, normal)
-    own2 = np.einsum("ij,ij->i", data.geom_xpos[geoms[:, 1]] - pos, normal)
-    if np.any(own1 > MAX_CONTACT_DEPTH_M) or np.any(own2 < -MAX_CONTACT_DEPTH_M):
-        return "a contact normal pointing the wrong way"
-    return None
-
-
 def _hermite_basis(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cubic Hermite basis (value, d/du, d2/du2) at u = k/n, k = 1..n, for control rows
     [p_start, p_end, T*v_start, T*v_end]."""
@@ -146,6 +81,10 @@ class Plant:
         self._rc = np.array(fr.ripple_cycles)
         self._load = np.array(fr.load)
         self._effort = self._effort_limits()
+        # The servo's and the friction's per-joint constants as Python floats, for the substep loop.
+        self._coef = [np.asarray(c, float).tolist() for c in (
+            profile.servo.kp, profile.servo.kd, profile.servo.ki, self._fc, self._load, self._effort, self._fs,
+            self._vs, self._ra, self._rc, self.ripple_phase)]
         # A real controller faults on sustained motor saturation; so does this one.
         self.saturation_fault_s = 0.024
         self._saturated_s = np.zeros(6)
@@ -166,6 +105,12 @@ class Plant:
         self._f6 = np.zeros(6)
         self._v6 = np.zeros(6)
         self._saved = np.empty(mujoco.mj_stateSize(self.model, STEP_STATE))
+        # Per geom: whether its contacts can come from the convex collider.  A scene without such a geom
+        # that can collide (the wiping table) has nothing for `_physics_step` to check or take again.
+        m = self.model
+        collides = (m.geom_contype != 0) | (m.geom_conaffinity != 0)
+        self._convex_geom = np.isin(m.geom_type, CONVEX_COLLIDER_GEOMS) & collides
+        self._check_contacts = bool(self._convex_geom.any())
         self.recollided = 0  # physics steps taken again after a failed collision detection (_physics_step)
         self.penetration = Penetration()  # the deepest contacts of the accepted physics steps
         self._mouth_site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "hole_top")
@@ -192,8 +137,10 @@ class Plant:
         self.seq = 0
         self.target = np.array(q0, float)
         self._targets = (self.target.copy(), self.target.copy(), self.target.copy())  # k-3, k-2, k-1
+        self._restart_command_queue(self.target)
         self._M = np.zeros((self.model.nv, self.model.nv))
-        self._integral = np.zeros(6)
+        self._bind_views()
+        self._integral = [0.0] * 6  # the servo's integral term (Python floats: step's substep loop)
         self._tau = np.array(self.data.qfrc_bias[self._arm])  # motor torque, static equilibrium
         self.holding = False
         self.status = ArmStatus()
@@ -201,6 +148,15 @@ class Plant:
             maxlen=self.profile.torque_sensing.latency_periods + 1
         )
         self._history.append(self._sample())
+
+    def _bind_views(self) -> None:
+        """Views of the MjData/MjModel arrays the substep loop touches: every attribute read of the
+        bindings builds a new array, which the loop would pay several times a physics step."""
+        m, d, arm = self.model, self.data, self._arm
+        self._qpos, self._qvel, self._bias = d.qpos[arm], d.qvel[arm], d.qfrc_bias[arm]
+        self._ctrl = d.ctrl[:12]  # the position servos' references, then the motors' torques
+        self._act = d.actuator_force[:12]  # the position servos', then the motors'
+        self._frictionloss = m.dof_frictionloss[arm]
 
     def _descends(self, body: int, ancestor: int) -> bool:
         while body > 0:
@@ -227,6 +183,7 @@ class Plant:
         q = np.array(self.data.qpos[self._arm])
         self.target = q
         self._targets = (q.copy(), q.copy(), q.copy())
+        self._restart_command_queue(q)
         self.status = ArmStatus(protective_stop=True)
 
     def reset_peaks(self) -> None:
@@ -239,7 +196,14 @@ class Plant:
         q = np.array(self.data.qpos[self._arm])
         self.target = q
         self._targets = (q.copy(), q.copy(), q.copy())
+        self._restart_command_queue(q)
         self.status = ArmStatus()
+
+    def _restart_command_queue(self, q: np.ndarray) -> None:
+        """The command channel's latency: the servo takes the target set `command_latency_periods` ago."""
+        latency = self.profile.servo.command_latency_periods
+        self._command_queue: collections.deque[np.ndarray] = collections.deque(
+            [q.copy() for _ in range(latency + 1)], maxlen=latency + 1)
 
     # ----------------------------------------------------------------------------- physics
     def step(self) -> None:
@@ -253,30 +217,46 @@ class Plant:
         # set-points: during this period the reference runs from target[k-2] to target[k-1].  The
         # servo feeds forward the spline's velocity and its own model's M(q) times its acceleration.
         p3, p2, p1 = self._targets
-        p0 = self.target
+        self._command_queue.append(self.target.copy())
+        p0 = self._command_queue[0]
         # Hermite control data: positions p2, p1 and central-difference velocities (scaled by T).
         knots = np.stack([p2, p1, (p1 - p3) / 2.0, (p0 - p2) / 2.0])
         q_refs = self._hb @ knots
         dq_refs = self._hb1 @ knots / T
         mujoco.mj_fullM(m, d, self._M)
         ff_inertia = (self._hb2 @ knots / T**2) @ self._M[arm, arm].T
+        # The substep loop runs on Python floats: per joint, six numbers, where each numpy call on a
+        # 6-vector costs as much as a dozen float operations.  Each expression keeps numpy's order of
+        # operations, so the results are bit for bit those of the vectorised form.
+        q_refs_l = q_refs.tolist()
+        kd_dq_l = (self._kd * dq_refs).tolist()
+        ffi_l = ff_inertia.tolist()
+        kp, kd, ki, fc, load, effort, fs, vs, ra, rc, phase = self._coef
+        integral = self._integral
+        sat = self._saturated_s.tolist()
+        peak = self.peak_demand.tolist()
+        qpos, qvel, bias, act, ctrl = self._qpos, self._qvel, self._bias, self._act, self._ctrl
+        ff, coulomb, stick, ripple = [0.0] * 6, [0.0] * 6, [0.0] * 6, [0.0] * 6
+        joints = range(6)
         for k in range(n):
-            q_ref = q_refs[k]
-            dq_ref = dq_refs[k]
-            q = d.qpos[arm]
-            v = d.qvel[arm]
-            self._integral += (q_ref - q) * h
-            # PD (kp, kd) lives in the position actuators (ctrl[:6] = q_ref); the motors add the
-            # velocity and inertial feedforward, the integral and the controller's own bias model.
-            ff = self._kd * dq_ref + self._ki * self._integral + d.qfrc_bias[arm] + ff_inertia[k]
-            d.ctrl[:6] = q_ref
-            d.ctrl[6:] = ff
-            tau_est = self._kp * (q_ref - q) - self._kd * v + ff
-            m.dof_frictionloss[arm] = (
-                self._fc * (1.0 + self._load * np.abs(tau_est) / self._effort)
-                + self._fs * np.exp(-((v / self._vs) ** 2))
-                + self._ra * np.sin(self._rc * q + self.ripple_phase)
-            )
+            q_ref, kd_dq, ffi = q_refs_l[k], kd_dq_l[k], ffi_l[k]
+            q, v, b = qpos.tolist(), qvel.tolist(), bias.tolist()
+            for j in joints:
+                e = q_ref[j] - q[j]
+                integral[j] += e * h
+                # PD (kp, kd) lives in the position actuators (ctrl[:6] = q_ref); the motors add the
+                # velocity and inertial feedforward, the integral and the controller's own bias model.
+                f = kd_dq[j] + ki[j] * integral[j] + b[j] + ffi[j]
+                ff[j] = f
+                tau_est = kp[j] * e - kd[j] * v[j] + f
+                # Friction (MuJoCo's dry-friction constraint): load-dependent Coulomb, Stribeck, ripple.
+                coulomb[j] = fc[j] * (1.0 + load[j] * abs(tau_est) / effort[j])
+                x = v[j] / vs[j]
+                stick[j] = -(x * x)
+                ripple[j] = ra[j] * math.sin(rc[j] * q[j] + phase[j])
+            stick_e = np.exp(stick).tolist()  # numpy's exp: it rounds differently from math.exp
+            ctrl[:] = q_ref + ff
+            self._frictionloss[:] = [coulomb[j] + fs[j] * stick_e[j] + ripple[j] for j in joints]
             if self._pad_body >= 0 or self.external_wrench is not None or self._xfrc_set:
                 # Cartesian body forces (xfrc_applied), not joint-space ones: the F/T sensor reads
                 # body interaction forces and must feel both the friction and a hand on the tool.
@@ -291,11 +271,16 @@ class Plant:
             self._physics_step()
             if self.after_physics_step is not None:
                 self.after_physics_step()
-            self._tau = np.array(d.qfrc_actuator[arm])  # clamped at the effort limit by MuJoCo
-            demand = np.abs(d.actuator_force[:6] + d.actuator_force[6:12])
-            np.maximum(self.peak_demand, demand, out=self.peak_demand)
-            over = demand > self._effort
-            self._saturated_s = np.where(over, self._saturated_s + h, 0.0)
+            # Motor saturation: |what the servo asked for| over the effort limit, for how long in a row.
+            a = act.tolist()
+            for j in joints:
+                demand = abs(a[j] + a[j + 6])
+                if demand > peak[j]:
+                    peak[j] = demand
+                sat[j] = sat[j] + h if demand > effort[j] else 0.0
+        self._saturated_s[:] = sat
+        self.peak_demand[:] = peak
+        self._tau = np.array(d.qfrc_actuator[arm])  # clamped at the effort limit by MuJoCo
         if np.any(self._saturated_s >= self.saturation_fault_s) and not self.status.error:
             j = int(np.argmax(self._saturated_s))
             log.error("plant: joint %d motor saturated for %.0f ms: controller error",
@@ -315,11 +300,20 @@ class Plant:
         1e-6 tolerance these were a 4.8 mm phantom at a survey touch (a 13 kN impulse), a 0.27 mm jump within
         1 ms as the peg slid along the wall (a 113 N spike) and reversed wall normals (~5 % of the peg bench's
         steps); at the plant's `CCD_TOLERANCE` (1e-9) 110-220 steps in a 50-trial bench remain.  Such a step
-        is taken again from the state before it with `RECOLLIDE_TOLERANCE` (config/plants/README.md)."""
+        is taken again from the state before it with `RECOLLIDE_TOLERANCE` (config/plants/README.md).  Only
+        steps with a contact of a geom the convex collider handles are checked: the others' colliders are
+        closed-form, and a scene without such geoms (the wiping table) saves no state to go back to."""
         m, d = self.model, self.data
+        if not self._check_contacts:
+            mujoco.mj_step(m, d)
+            if d.ncon:
+                self.penetration.update(d, self._mouth_site)
+            return
         mujoco.mj_getState(m, d, self._saved, STEP_STATE)
         mujoco.mj_step(m, d)
-        why = failed_contact(m, d)
+        if not d.ncon:
+            return
+        why = failed_contact(m, d) if self._convex_geom[d.contact.geom].any() else None
         if why is not None:
             mujoco.mj_setState(m, d, self._saved, STEP_STATE)
             tol = m.opt.ccd_tolerance
@@ -337,35 +331,43 @@ class Plant:
         """Coulomb friction of the wiping head on the table, regularised below `v_eps` [m/s]:
         F = -mu * Fn * tanh(|v_t| / v_eps) * v_t / |v_t|, applied at the contact point."""
         m, d = self.model, self.data
-        for i in range(d.ncon):
-            c = d.contact[i]
-            if self._pad_geom not in (c.geom1, c.geom2):
+        if not d.ncon:
+            return
+        contacts = d.contact
+        for i, pair in enumerate(contacts.geom.tolist()):
+            if self._pad_geom not in pair:
                 continue
             mujoco.mj_contactForce(m, d, i, self._f6)
             fn = self._f6[0]
             if fn <= 0.0:
                 continue
-            normal = c.frame[:3]
+            normal = contacts.frame[i, :3]
             mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, self._pad_body, self._v6, 0)
             v = self._v6[3:]
             vt = v - normal * (v @ normal)
-            speed = float(np.linalg.norm(vt))
+            speed = math.sqrt(vt.dot(vt))  # np.linalg.norm's own arithmetic, without its checks
             if speed < 1e-9:
                 continue
-            force = -self._pad_mu * fn * np.tanh(speed / v_eps) * vt / speed
-            self._push(self._pad_body, force, np.zeros(3), c.pos)
+            along = float(-self._pad_mu * fn * np.tanh(speed / v_eps))
+            self._push(self._pad_body, [along * x / speed for x in vt.tolist()], None, contacts.pos[i])
 
     def _apply_tcp_wrench(self, wrench: np.ndarray) -> None:
         """Apply a world-frame wrench at the TCP (a scripted 'hand' on the tool)."""
         d = self.data
         tool_body = self.model.site_bodyid[self._tcp_site]
-        self._push(int(tool_body), wrench[:3], wrench[3:], d.site_xpos[self._tcp_site])
+        self._push(int(tool_body), wrench[:3].tolist(), wrench[3:], d.site_xpos[self._tcp_site])
 
-    def _push(self, body: int, force: np.ndarray, torque: np.ndarray, point: np.ndarray) -> None:
+    def _push(self, body: int, force: list[float], torque: np.ndarray | None, point: np.ndarray) -> None:
         """Add a world-frame force applied at `point` (plus a torque) to a body's Cartesian load."""
         d = self.data
-        d.xfrc_applied[body, :3] += force
-        d.xfrc_applied[body, 3:] += torque + np.cross(point - d.xipos[body], force)
+        # The lever's moment r x F on Python floats: np.cross on 3-vectors costs more than the whole friction.
+        fx, fy, fz = force
+        (px, py, pz), (cx, cy, cz) = point.tolist(), d.xipos[body].tolist()
+        rx, ry, rz = px - cx, py - cy, pz - cz
+        moment = [ry * fz - rz * fy, rz * fx - rx * fz, rx * fy - ry * fx]
+        if torque is not None:
+            moment = [t + mo for t, mo in zip(torque.tolist(), moment, strict=True)]
+        d.xfrc_applied[body] += [fx, fy, fz, *moment]
 
     def _sample(self) -> ArmState:
         d = self.data

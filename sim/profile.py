@@ -5,7 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from drivers.configio import join, load_dataclass, read_yaml, require, require_len
+from cell.config import read_layered_yaml
+from drivers.configio import join, load_dataclass, require, require_len
 
 LINKS = ("link_1", "link_2", "link_3", "link_4", "link_5", "link_6")
 
@@ -83,11 +84,15 @@ class ServoProfile:
     kp: list[float]  # N·m/rad
     kd: list[float]  # N·m·s/rad
     ki: list[float]  # N·m/(rad·s)
+    # Periods between a target's arrival and the servo's use of it, beyond the interpolation's own
+    # period: the transport and buffering of a command channel (TM's Listen node queues scripts).
+    command_latency_periods: int = 0
 
     def validate(self, where: str) -> None:
         for name in ("kp", "kd", "ki"):
             require_len(getattr(self, name), 6, f"{where}.{name}")
             require(all(v >= 0 for v in getattr(self, name)), f"{where}.{name}", "must be >= 0")
+        require(0 <= self.command_latency_periods <= 5, f"{where}.command_latency_periods", "must lie in 0..5")
 
 
 @dataclass
@@ -165,7 +170,7 @@ class PlantProfile:
 
 
 def load_profile(path: Path) -> PlantProfile:
-    profile = load_dataclass(PlantProfile, read_yaml(path), f"{path}:")
+    profile = load_dataclass(PlantProfile, read_layered_yaml(path), f"{path}:")
     if profile.specimen_seed is None:
         profile.specimen_seed = profile.seed  # fixed now: a run seed set later does not change the arm
     return profile

@@ -42,9 +42,8 @@ from drivers.tm5.registers import (
     pose_to_regs,
     wrap_int32,
 )
-from sim.kinematic_plant import KinematicPlant
 from sim.plant_api import PlantLike
-from sim.tm5_program import RobotProgramState, RobotSideProgram
+from sim.tm5_program import LEASE_TIMEOUT_S, RobotProgramState, RobotSideProgram
 
 log = logging.getLogger(__name__)
 
@@ -107,11 +106,13 @@ class TM5Emulator:
 
     def __init__(self, plant: PlantLike, layout: UserAreaLayout | None = None, host: str = "127.0.0.1",
                  port: int = 0, time_scale: float = 1.0, watchdog_cycles: int = 10,
-                 history: int = 2048) -> None:
+                 history: int = 2048, lease_timeout_s: float = LEASE_TIMEOUT_S) -> None:
         if not (time_scale > 0 and math.isfinite(time_scale)):
             raise ValueError(f"time_scale must be positive, got {time_scale!r}")
         if watchdog_cycles < 1:
             raise ValueError(f"watchdog_cycles must be >= 1, got {watchdog_cycles}")
+        if not (lease_timeout_s > 0 and math.isfinite(lease_timeout_s)):
+            raise ValueError(f"lease_timeout_s must be positive, got {lease_timeout_s!r}")
         self.plant = plant
         self.layout = layout if layout is not None else UserAreaLayout()
         self.layout.validate("layout")
@@ -126,7 +127,7 @@ class TM5Emulator:
         self._ir = [0] * IR_COUNT
         self._di = [False] * DI_COUNT
         self._hr = [0] * _HR_COUNT
-        self._robot = RobotSideProgram(plant, self.layout, self._hr, watchdog_cycles)
+        self._robot = RobotSideProgram(plant, self.layout, self._hr, watchdog_cycles, lease_timeout_s)
         self._history: OrderedDict[int, ArmState] = OrderedDict()
         self._history_len = history
         self._history_lock = threading.Lock()
@@ -451,19 +452,3 @@ class TM5Emulator:
                 if self.paused:
                     self._robot.hold("project paused")
                 log.info("TM5 emulator: play/pause coil %d: paused=%s", COIL_PLAY_PAUSE, self.paused)
-
-
-def emulate_arm_main(port: int, plant: PlantLike | None = None, host: str = "127.0.0.1") -> int:
-    """Serve a TM5-700 emulator for `plant` (default: KinematicPlant) until Ctrl+C; returns the exit code."""
-    emulator = TM5Emulator(plant if plant is not None else KinematicPlant(), host=host, port=port)
-    bound = emulator.start()
-    log.info("TM5-700 emulator listening on %s:%d (Modbus/TCP, unit id any); Ctrl+C to stop", host, bound)
-    try:
-        while True:
-            time.sleep(0.5)
-    except KeyboardInterrupt:
-        log.info("TM5 emulator: interrupted, shutting down")
-    finally:
-        emulator.stop()
-    return 0
-

@@ -31,6 +31,10 @@ log = logging.getLogger(__name__)
 JITTER_DELAY_CYCLES = 2
 RATE_STEP = 0.25
 MAX_RATE = 1.25
+# The control lease expires when its holder has not renewed it for this long (robot time): long
+# enough to ride out a reconnect, short enough that a crashed host's successor is not kept waiting.
+LEASE_TIMEOUT_S = 0.5
+LEASE_AGE_MAX_MS = 0xFFFF
 
 
 @dataclass
@@ -39,10 +43,17 @@ class RobotProgramState:
 
     counter: int = 0  # robot heartbeat, +1 per cycle (INT32, wraps)
     last_host_seq: int = 0  # the host registers start at 0: nothing to do until the host writes
+    last_command: int = int(Command.IDLE)  # the holder's last command word, as acted upon
     stalled_cycles: int = 0
     executing: bool = False
     held: bool = False  # latched protective hold (host STOP, bad targets, pause)
     watchdog: bool = False  # latched: host heartbeat stalled while tracking
+    # The control lease: the token (unsigned 32-bit, 0: free) of the one host whose writes are acted
+    # upon, cycles since it last renewed, and how many writes of other hosts were refused.
+    lease_token: int = 0
+    lease_age_cycles: int = 0
+    refused_writes: int = 0
+    last_refused: tuple[int, int] | None = None
     # Jitter buffer: targets received this tracking session, by host sequence number; the (fractional)
     # sequence position the servo plays, and how many sequence numbers it advances per cycle.
     received: dict[int, np.ndarray] = field(default_factory=dict)
@@ -65,10 +76,12 @@ class RobotSideProgram:
     """One cycle of the robot-side program over the user-area registers `hr` (9000-9999, the image the
     Modbus server serves): `act_on_host_block` before the plant steps, `publish` after it."""
 
-    def __init__(self, plant: PlantLike, layout: UserAreaLayout, hr: list[int], watchdog_cycles: int) -> None:
+    def __init__(self, plant: PlantLike, layout: UserAreaLayout, hr: list[int], watchdog_cycles: int,
+                 lease_timeout_s: float = LEASE_TIMEOUT_S) -> None:
         self.plant = plant
         self.layout = layout
         self.watchdog_cycles = watchdog_cycles
+        self.lease_cycles = max(1, round(lease_timeout_s / plant.dt))
         self.state = RobotProgramState()
         self._hr = hr
 
@@ -80,10 +93,15 @@ class RobotSideProgram:
         return seq, targets, self._hr_slice(lay.command, 1)[0]
 
     def act_on_host_block(self) -> None:
-        """The input half: heartbeat, command word, targets, watchdog."""
+        """The input half: control lease, heartbeat, command word, targets, watchdog."""
         prog, lay = self.state, self.layout
         seq = regs_to_int32(self._hr_slice(lay.host_seq, 2))
         command = self._hr_slice(lay.command, 1)[0]
+        if not self._holder_wrote(seq, regs_to_int32(self._hr_slice(lay.host_token, 2)) & 0xFFFFFFFF):
+            # Another host's write (or one without a token) is refused whole, a STOP included: the
+            # cycle runs as if the holder had not written (the E-stop and the stop coil stop any arm).
+            seq, command = prog.last_host_seq, prog.last_command
+        prog.last_command = command
         advanced = seq != prog.last_host_seq
         if advanced:
             prog.last_host_seq, prog.stalled_cycles = seq, 0
@@ -117,6 +135,36 @@ class RobotSideProgram:
                 self.release()
         else:
             self.hold(f"unknown host command {command}")
+
+    def _holder_wrote(self, seq: int, token: int) -> bool:
+        """Age, expire, grant or renew the control lease; whether the block in the registers is the holder's."""
+        prog = self.state
+        prog.lease_age_cycles += 1
+        if prog.lease_token and prog.lease_age_cycles > self.lease_cycles:
+            log.info("TM5 emulator robot-side program: lease of host 0x%08x expired", prog.lease_token)
+            prog.lease_token = 0
+        fresh = seq != prog.last_host_seq
+        if prog.lease_token == 0 and token != 0 and fresh:
+            log.info("TM5 emulator robot-side program: control granted to host 0x%08x", token)
+            prog.lease_token, prog.lease_age_cycles = token, 0
+        if token == 0 or token != prog.lease_token:
+            if fresh and prog.last_refused != (token, seq):
+                prog.refused_writes += 1
+                prog.last_refused = (token, seq)
+                log.warning("TM5 emulator robot-side program: write of host 0x%08x refused (held by 0x%08x)",
+                            token, prog.lease_token)
+            return False
+        if fresh:
+            prog.lease_age_cycles = 0
+        return True
+
+    @property
+    def lease_age_ms(self) -> int:
+        """Time since the holder last renewed its lease, as published (0 when nobody holds it)."""
+        prog = self.state
+        if not prog.lease_token:
+            return 0
+        return min(LEASE_AGE_MAX_MS, round(prog.lease_age_cycles * self.plant.dt * 1000.0))
 
     def _play_next(self) -> None:
         """Hand the servo one target per cycle from the jitter buffer, on an elastic clock: the
@@ -185,6 +233,8 @@ class RobotSideProgram:
         self._hr_put(lay.speed, floats_to_regs(np.degrees(st.dq), allow_nonfinite=True))
         self._hr_put(lay.robot_status, [int(flags)])
         self._hr_put(lay.host_seq_echo, int32_to_regs(prog.last_host_seq))
+        self._hr_put(lay.lease_holder, int32_to_regs(wrap_int32(prog.lease_token)))
+        self._hr_put(lay.lease_age_ms, [self.lease_age_ms])
         return st
 
     def _hr_slice(self, address: int, count: int) -> list[int]:

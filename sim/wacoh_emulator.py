@@ -37,9 +37,18 @@ _ZERO_WINDOW_S = 0.05
 _ZERO_REPEATS = 3
 
 
+_PROBABILITIES = ("split_prob", "garbage_prob", "drop_crlf_prob", "drop_reply_prob", "reply_delay_prob",
+                  "corrupt_p_prob")
+_DURATIONS_S = ("split_max_delay_s", "reply_delay_s", "reply_delay_jitter_s")
+
+
 @dataclass
 class FaultConfig:
-    """Seeded misbehaviour of the line and the sensor; probabilities are per reply."""
+    """Seeded misbehaviour of the line and the sensor; probabilities are per reply.
+
+    Every field is checked whenever it is set (at construction and by a fault command later): a
+    probability outside [0, 1] is a one-line ValueError, never a fault that silently saturates.
+    """
 
     split_prob: float = 0.0  # write a reply in 2-4 pieces ...
     split_max_delay_s: float = 0.001  # ... with a pause of up to this between pieces
@@ -49,15 +58,38 @@ class FaultConfig:
     drop_reply_prob: float = 0.0  # do not send a reply (or streamed record) at all
     ignore_p: bool = False  # never answer `p` (some models do not)
     reply_delay_s: float = 0.0  # send a reply this late (what the line and the adapter add) ...
-    reply_delay_prob: float = 1.0  # ... with this probability; replies stay in order (a later one waits)
+    reply_delay_prob: float = 1.0  # ... with this probability; replies stay in order (a later one waits) ...
+    reply_delay_jitter_s: float = 0.0  # ... plus up to this much more, uniformly (a line's varying latency)
+    corrupt_p_prob: float = 0.0  # flip 1..3 random bits of a `p` reply (a noisy line: no checksum catches it) ...
+    corrupt_p_repeat: bool = False  # ... the same bits every time (a corruption that repeats)
 
-    def __post_init__(self) -> None:
-        for name in ("split_prob", "garbage_prob", "drop_crlf_prob", "drop_reply_prob", "reply_delay_prob"):
-            p = getattr(self, name)
-            if not 0.0 <= p <= 1.0:
-                raise ValueError(f"FaultConfig.{name} must be in [0, 1], got {p}")
-        if self.split_max_delay_s < 0 or self.garbage_max_len < 1 or self.reply_delay_s < 0:
-            raise ValueError("FaultConfig: split_max_delay_s and reply_delay_s must be >= 0, garbage_max_len >= 1")
+    def __setattr__(self, name: str, value: object) -> None:
+        _check_fault(name, value)
+        super().__setattr__(name, value)
+
+
+def _check_fault(name: str, value: object) -> None:
+    number = float(value) if isinstance(value, int | float) and not isinstance(value, bool) else math.nan
+    if name in _PROBABILITIES and not 0.0 <= number <= 1.0:  # NaN fails every comparison
+        raise ValueError(f"FaultConfig.{name} must be a probability from 0 to 1, got {value!r}")
+    if name in _DURATIONS_S and not (math.isfinite(number) and number >= 0.0):
+        raise ValueError(f"FaultConfig.{name} must be a finite number of seconds >= 0, got {value!r}")
+    if name == "garbage_max_len" and not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+        raise ValueError(f"FaultConfig.garbage_max_len must be an integer >= 1, got {value!r}")
+
+
+def draw_bit_flips(n_bytes: int, rng: np.random.Generator, most: int = 3) -> list[int]:
+    """1..`most` distinct bit positions (byte * 8 + bit) of an `n_bytes` reply: the corruption of one reply."""
+    n = int(rng.integers(1, min(most, 8 * n_bytes) + 1))
+    return sorted(int(b) for b in rng.choice(8 * n_bytes, n, replace=False))
+
+
+def flip_bits(payload: bytes, flips: list[int]) -> bytes:
+    """`payload` with the bits at `flips` (byte * 8 + bit) inverted; distinct flips always change it."""
+    out = bytearray(payload)
+    for position in flips:
+        out[position // 8] ^= 1 << (position % 8)
+    return bytes(out)
 
 
 class WacohEmulator:
@@ -103,6 +135,7 @@ class WacohEmulator:
         self._last_zero_t = -math.inf
         self._pending_digit: int | None = None
         self._delayed: deque[tuple[float, bytes]] = deque()  # (due time, bytes) of delayed replies, in order
+        self._p_flips: list[int] | None = None  # the repeated corruption of `p`, once drawn
         # Statistics for tests.
         self.commands: dict[str, int] = {}
         self.records_sent = 0
@@ -110,6 +143,7 @@ class WacohEmulator:
         self.zero_events = 0
         self.bytes_overflowed = 0
         self.replies_delayed = 0
+        self.p_corrupted = 0
         # Plumbing.
         self._master: int | None = None
         self._slave: int | None = None
@@ -219,7 +253,7 @@ class WacohEmulator:
         elif c == "p":
             if not self.faults.ignore_p:
                 s = self.sensitivities.values
-                self._send(",".join(f"{v:.3f}" for v in s).encode() + b"\r\n")
+                self._send(self._maybe_corrupt_p(",".join(f"{v:.3f}" for v in s).encode() + b"\r\n"))
         elif c == "O":
             self._zero_command()
         elif c == "V":
@@ -231,6 +265,16 @@ class WacohEmulator:
         elif c == "E":
             self.streaming = False
         # The sensor sends no error reply: anything else is ignored.
+
+    def _maybe_corrupt_p(self, reply: bytes) -> bytes:
+        f, rng = self.faults, self._fault_rng
+        if not (f.corrupt_p_prob and rng.random() < f.corrupt_p_prob):
+            return reply
+        flips = self._p_flips if f.corrupt_p_repeat and self._p_flips is not None else draw_bit_flips(len(reply), rng)
+        if f.corrupt_p_repeat:
+            self._p_flips = flips
+        self.p_corrupted += 1
+        return flip_bits(reply, flips)
 
     def _count(self, name: str) -> None:
         self.commands[name] = self.commands.get(name, 0) + 1
@@ -311,7 +355,8 @@ class WacohEmulator:
         late = f.reply_delay_s > 0 and self._fault_rng.random() < f.reply_delay_prob
         if late or self._delayed:
             # Due after the delay if late, and never before a reply still waiting (a line keeps order).
-            due = time.monotonic() + (f.reply_delay_s if late else 0.0)
+            delay = f.reply_delay_s + float(self._fault_rng.uniform(0.0, f.reply_delay_jitter_s)) if late else 0.0
+            due = time.monotonic() + delay
             if self._delayed:
                 due = max(due, self._delayed[-1][0])
             self._delayed.append((due, data))

@@ -32,6 +32,13 @@ class MachineTask:
 
     name = "task"
     States: type[enum.Enum]
+    # The states in which the task works on its workpiece, after its tare: only there are the virtual sensor
+    # and the F/T sensor compared (before the tare the F/T sensor still carries its unloaded offset, and in
+    # free moves both read noise).  Every task declares its own; () scores nothing.
+    working_states: tuple[str, ...] = ()
+    # The states in which a touch is expected (the virtual sensor reads fast there, and the run reports how
+    # much of a touch's peak it saw); () for a task that never touches on purpose.
+    touch_states: tuple[str, ...] = ()
     state_log_level = logging.INFO  # state changes are logged at this level (long data runs: DEBUG)
     fail: Trigger
 

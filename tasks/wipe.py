@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from cell.config import WORKSPACE_REACH_M, check_task_motion
 from cell.control.impedance import DiscreteImpedance, ImpedanceParams
 from cell.control.loop import Command, Observation
 from cell.control.trajectory import JointMove, PathProfile, tool_down_pose
@@ -19,7 +20,7 @@ from tasks.base import MachineTask, Trigger
 log = logging.getLogger(__name__)
 
 
-class S(enum.Enum):
+class WipeState(enum.Enum):
     MOVE_TO_START = "move_to_start"
     TARE = "tare"
     APPROACH = "approach"
@@ -70,6 +71,10 @@ class WipeConfig:
                      "lost_contact_s", "max_duration_s"):
             require(getattr(self, name) > 0, f"{where}.{name}", f"must be > 0, got {getattr(self, name)}")
         require(self.move_speed_fraction <= 1, f"{where}.move_speed_fraction", "must be <= 1")
+        check_task_motion(self, where)
+        for i, p in enumerate(self.path):
+            require(all(abs(v) <= WORKSPACE_REACH_M for v in p), f"{where}.path[{i}]",
+                    f"must lie within +-{WORKSPACE_REACH_M:g} m of the base, got {p}")
 
 
 def load_wipe_config(raw: dict[str, Any] | None, where: str) -> WipeConfig:
@@ -80,6 +85,9 @@ class WipeTask(MachineTask):
     """State machine (transitions) for force-controlled wiping; the force comes from the loop's source."""
 
     name = "wipe"
+    # The force is regulated, and scored, while wiping; the table is first touched in the approach.
+    working_states = (WipeState.WIPE.value,)
+    touch_states = (WipeState.APPROACH.value,)
     arrived: Trigger
     tared: Trigger
     touched: Trigger
@@ -93,14 +101,14 @@ class WipeTask(MachineTask):
         self.robot = robot
         self.dt = dt
         self.table_height = table_height
-        super().__init__(S.MOVE_TO_START, [
-            ("arrived", S.MOVE_TO_START, S.TARE),
-            ("tared", S.TARE, S.APPROACH),
-            ("touched", S.APPROACH, S.RAMP),
-            ("ramped", S.RAMP, S.SETTLE),
-            ("settled", S.SETTLE, S.WIPE),
-            ("finished", S.WIPE, S.RETRACT),
-            ("retracted", S.RETRACT, S.DONE),
+        super().__init__(WipeState.MOVE_TO_START, [
+            ("arrived", WipeState.MOVE_TO_START, WipeState.TARE),
+            ("tared", WipeState.TARE, WipeState.APPROACH),
+            ("touched", WipeState.APPROACH, WipeState.RAMP),
+            ("ramped", WipeState.RAMP, WipeState.SETTLE),
+            ("settled", WipeState.SETTLE, WipeState.WIPE),
+            ("finished", WipeState.WIPE, WipeState.RETRACT),
+            ("retracted", WipeState.RETRACT, WipeState.DONE),
         ])
 
         x0, y0 = cfg.path[0]
@@ -219,7 +227,7 @@ class WipeTask(MachineTask):
         if fz > self.cfg.max_force_n:
             self.fail_because(f"normal force {fz:.1f} N exceeded the task limit {self.cfg.max_force_n:.1f} N")
             return
-        if self.state in (S.SETTLE, S.WIPE):
+        if self.state in (WipeState.SETTLE, WipeState.WIPE):
             self._t_lost = self._t_lost + self.dt if fz < self.cfg.contact_threshold_n else 0.0
             if self._t_lost >= self.cfg.lost_contact_s:
                 self.fail_because(f"lost contact with the table for {self._t_lost:.2f} s")
@@ -247,10 +255,11 @@ class WipeTask(MachineTask):
             "path_length_m": self.path.length,
         }
         if e.size:
+            # The force source's own view (with the virtual sensor in the loop the runner adds the F/T sensor's).
             out.update(
-                force_mae_n=float(np.mean(np.abs(e))),
-                force_std_n=float(np.std(e)),
-                force_max_abs_error_n=float(np.max(np.abs(e))),
+                force_tracking_mae_n=float(np.mean(np.abs(e))),
+                force_tracking_std_n=float(np.std(e)),
+                force_tracking_max_abs_error_n=float(np.max(np.abs(e))),
                 force_mean_n=float(np.mean(self.wipe_forces)),
             )
         return out

@@ -7,22 +7,25 @@ import json
 import numpy as np
 import pytest
 
-from bench.planning import PLANNER_NAMES, summarise
+from bench.planning import PLANNER_NAMES, draw_path, gap_closed, random_paths, summarise, torque_move
 from bench.planning_calibration import calibrate
-from cell.planning.planner import KinematicPlanner, PlannerConfig
+from cell.planning.planner import KinematicPlanner, PlannerConfig, ToppraPlanner
+from cell.planning.speed_env import WORKSPACE_DEG
 from main import main
 
 PATH = np.radians([[0, -30, 90, 0, 90, 0], [60, 10, 60, -30, 90, 30], [120, 30, 30, 0, 90, 0]])
-KEYS = {"median_time_ratio", "torque_violations", "plan_time_s_p95", "ppo_training_s", "model_vs_ppo",
+KEYS = {"median_time_ratio", "median_gap_closed", "gap_closed", "ppo_curve", "paths_class", "torque_violations",
+        "plan_time_s_p95", "ppo_training_s", "model_vs_ppo",
         "collision_stops", "kinematic_acceleration_limits", "per_path", "reduction_vs_uniform_median_pct",
         "paper_setting", "unvalidated_paths", "median_time_ratio_first_run", "model_trust"}
 
 
-def row(path: str, times: dict[str, float], violation: str | None = None) -> dict:
-    return {"path": path, **{p: {"duration_s": t, "plan_time_s": 0.01 * t, "outcome": "done", "peak_ratio": 0.5,
-                                 "torque_violation": p == violation, "rounds": 1 + (p == violation),
-                                 "speed_bound_share": 0.5, "validated_s": t * (1.1 if p == violation else 1.0)}
-                             for p, t in times.items()}}
+def row(path: str, times: dict[str, float], violation: str | None = None, speed_limit: float = np.nan) -> dict:
+    return {"path": path, "speed_limit_only_s": speed_limit,
+            **{p: {"duration_s": t, "plan_time_s": 0.01 * t, "outcome": "done", "peak_ratio": 0.5,
+                   "torque_violation": p == violation, "rounds": 1 + (p == violation),
+                   "speed_bound_share": 0.5, "validated_s": t * (1.1 if p == violation else 1.0)}
+               for p, t in times.items()}}
 
 
 def test_the_summary_takes_medians_over_the_kinematic_baseline_and_counts_violations():
@@ -42,6 +45,58 @@ def test_the_summary_takes_medians_over_the_kinematic_baseline_and_counts_violat
     assert out["named_paths"]["trajectory_1"]["ppo_reduction_pct"] == pytest.approx(100 * (1 - 0.99 / 2.0))
     assert out["named_paths"]["trajectory_1"]["paper_reduction_pct"] == 24.7
     assert out["plan_time_s_p95"]["uniform"] == pytest.approx(np.percentile([0.02, 0.03, 0.04], 95))
+
+
+def test_gap_closed_is_the_share_of_the_kinematic_excess_over_the_speed_limit_bound_that_ours_removes():
+    assert gap_closed(3.0, 2.8, 2.6) == pytest.approx(0.5)
+    assert gap_closed(3.0, 2.6, 2.6) == pytest.approx(1.0)  # at the bound
+    assert gap_closed(3.0, 3.0, 2.6) == pytest.approx(0.0)  # no faster than kinematic
+    assert gap_closed(3.0, 3.1, 2.6) == pytest.approx(-0.25)  # slower
+    assert np.isnan(gap_closed(2.6, 2.6, 2.6))  # kinematic already at the bound: nothing to close
+    assert np.isnan(gap_closed(np.nan, 2.6, 2.0))  # not validated
+    rows = [row("trajectory_1", {"uniform": 2.0, "kinematic": 1.0, "ppo": 0.9, "model": 0.9}, speed_limit=0.8),
+            row("trajectory_2", {"uniform": 2.0, "kinematic": 1.0, "ppo": 0.9, "model": 0.8}, speed_limit=0.8),
+            row("random_00", {"uniform": 3.0, "kinematic": 2.0, "ppo": 1.5, "model": 1.6}, speed_limit=1.0),
+            row("random_01", {"uniform": 4.0, "kinematic": 2.0, "ppo": 1.8, "model": 1.9}, speed_limit=1.5),
+            row("random_02", {"uniform": 4.0, "kinematic": 2.0, "ppo": 1.8, "model": 1.2})]  # no bound: left out
+    out = summarise(rows)
+    assert out["gap_closed"]["random_00"] == pytest.approx(0.4) and out["gap_closed"]["random_02"] is None
+    assert out["median_gap_closed"]["random"] == pytest.approx(0.3)  # of 0.4, 0.2
+    assert out["median_gap_closed"]["named"] == pytest.approx(0.75)  # of 0.5, 1.0
+    assert out["median_time_ratio_by_group"]["named"]["model"] == pytest.approx(0.85)
+    assert out["median_time_ratio_by_group"]["random"]["model"] == pytest.approx(0.8)  # of 0.8, 0.95, 0.6
+    assert out["median_time_ratio_by_group"]["random"]["speed_limit_only"] == pytest.approx(0.625)  # 0.5, 0.75
+
+
+@pytest.mark.parametrize("medium", [False, True])
+def test_a_torque_bound_path_moves_joints_1_to_3_by_short_or_medium_steps_and_holds_the_wrist(medium):
+    rng = np.random.default_rng(3)
+    lo, hi = np.radians(WORKSPACE_DEG[:, 0]), np.radians(WORKSPACE_DEG[:, 1])
+    for _ in range(50):
+        w = torque_move(rng, medium)
+        assert w.shape == (2, 6)
+        assert np.all(w >= lo - 1e-12) and np.all(w <= hi + 1e-12)
+        assert np.array_equal(w[0, 3:], w[1, 3:])
+        step = np.degrees(np.abs(w[1, :3] - w[0, :3]))
+        room = np.degrees(np.maximum(hi - w[0], w[0] - lo))[:3]  # a step is shortened to the room there
+        low, high = (70.0, 120.0) if medium else (20.0, 70.0)
+        assert np.all(step <= high + 1e-9)
+        assert np.all((step >= low - 1e-9) | np.isclose(step, room))
+
+
+def test_the_path_classes_draw_their_kind_and_name_it(robot):
+    rng = np.random.default_rng(0)
+    assert [draw_path(rng, "mixed", k)[0] for k in range(4)] == ["random", "torque", "random", "torque"]
+    assert draw_path(rng, "torque", 0)[1].shape == (2, 6) and draw_path(rng, "speed", 0)[1].shape[0] >= 3
+    checker = ToppraPlanner(robot, robot.rnea, PlannerConfig())
+    box = (np.full(3, -5.0), np.full(3, 5.0))
+    paths = random_paths(checker, 4, 1, box, path_class="torque")
+    assert [n for n, _ in paths] == ["torque_00", "torque_01", "torque_02", "torque_03"]
+    assert all(w.shape == (2, 6) for _, w in paths)
+    names = [n for n, _ in random_paths(checker, 4, 1, box, path_class="mixed")]
+    assert names == ["random_00", "torque_01", "random_02", "torque_03"]
+    # the default (speed) draw is the one the bench has always made: the same paths for the same seed
+    assert [n for n, _ in random_paths(checker, 2, 1, box)] == ["random_00", "random_01"]
 
 
 def test_the_calibration_finds_the_largest_acceleration_fraction_within_the_limit(robot):
@@ -75,6 +130,7 @@ def test_the_calibration_finds_the_largest_acceleration_fraction_within_the_limi
     (["bench", "planning", "--paths", "0"], "--paths"),
     (["bench", "planning", "--paths", "x"], "--paths"),
     (["bench", "planning", "--ppo-updates", "-3"], "--ppo-updates"),
+    (["bench", "planning", "--paths-class", "heavy"], "--paths-class"),
 ])
 def test_bad_arguments_give_one_line_errors(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:
@@ -107,6 +163,7 @@ def test_a_small_bench_runs_every_planner_on_the_plant_and_reports_its_keys(monk
         assert set(out[key]) == set(PLANNER_NAMES)
     assert out["ppo_trained_now"] and out["ppo_training_s"] > 0
     assert out["median_time_ratio"]["kinematic"] == 1.0
+    assert out["ppo_curve"][-1]["updates"] == 2 and out["paths_class"] == "speed"
     assert set(out["paper_setting"]) == {"trajectory_1", "trajectory_2", "trajectory_3"}
     assert all(r[p]["outcome"] in ("done", "safety_stop", "collision", "plan_failed") for r in out["per_path"]
                for p in PLANNER_NAMES)

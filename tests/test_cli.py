@@ -24,8 +24,8 @@ def test_wipe_on_the_default_plant_meets_the_force_targets(capsys):
     summary = last_json(capsys)
     assert code == 0, summary
     assert summary["outcome"] == "done" and not summary["safety_stop"]
-    assert summary["force_mae_n"] <= 2.0
-    assert summary["force_std_n"] <= 2.0
+    assert summary["force_tracking_mae_n"] <= 2.0
+    assert summary["force_tracking_std_n"] <= 2.0
     assert summary["path_length_m"] >= 0.3 and summary["wipe_samples"] > 500
     run = Path(summary["run_dir"])
     assert (run / "summary.json").exists() and (run / "config.yaml").exists() and (run / "plot.png").exists()
@@ -34,7 +34,7 @@ def test_wipe_on_the_default_plant_meets_the_force_targets(capsys):
     assert {"t", "state", "q1", "tau6", "q_cmd3", "fz", "fz_setpoint", "compute_ms"} <= set(log.column_names)
     assert set(log.column("state").to_pylist()) >= {"approach", "wipe", "retract"}
     saved = json.loads((run / "summary.json").read_text())
-    assert saved["force_mae_n"] == summary["force_mae_n"]
+    assert saved["force_tracking_mae_n"] == summary["force_tracking_mae_n"]
 
 
 @pytest.mark.slow
@@ -60,7 +60,7 @@ def test_missing_force_readings_are_not_scored_as_errors(capsys, monkeypatch):
     summary = last_json(capsys)
     assert code == 0 and summary["outcome"] == "done", summary
     assert summary["missing_force_samples"] > 10
-    assert np.isfinite(summary["force_mae_n"]) and summary["force_mae_n"] <= 2.0
+    assert np.isfinite(summary["force_tracking_mae_n"]) and summary["force_tracking_mae_n"] <= 2.0
 
 
 def write_config(tmp_path: Path, mutate) -> Path:

@@ -11,8 +11,9 @@ from drivers.errors import DriverError
 from main import main
 from tasks.setup.doctor import Doctor, DoctorSettings, report
 
-CHECKS = ["arm_reachable", "modbus_connect", "register_map", "robot_program_heartbeat", "estop_and_errors",
-          "sensor_port", "sensor_sensitivities", "sensor_tare_stability", "sensor_line", "control_step_timing"]
+CHECKS = ["arm_reachable", "modbus_connect", "register_map", "robot_program_heartbeat", "state_rate",
+          "estop_and_errors", "sensor_port", "sensor_sensitivities", "sensor_tare_stability", "sensor_line",
+          "control_step_timing"]
 
 
 def test_doctor_passes_on_the_healthy_emulated_cell(capsys):
@@ -81,3 +82,23 @@ def test_doctor_names_each_injected_fault(emulated, fault, check, words):
 def test_doctor_refuses_faults_on_the_real_cell(capsys):
     assert main(["doctor", "--cell", "real", "--inject", "freeze"]) == 2
     assert "emulated cell only" in capsys.readouterr().err
+
+
+def test_state_rate_fails_when_the_arm_streams_slower_than_the_loop(emulated):
+    """The emulator's robot side cycles every 8 ms; a config asking for a 4 ms loop must not pass."""
+    holder, robot, cfg = emulated
+    try:
+        checks = Doctor(holder.arm, None, robot.limits,
+                        DoctorSettings(period_s=cfg.loop.period_s / 2, timing_steps=10, tail_periods=3.0)).run()
+    finally:
+        with contextlib.suppress(DriverError):
+            holder.arm.disconnect()
+    out = report(checks, "emulated")
+    rate = next(c for c in out["checks"] if c["name"] == "state_rate")
+    assert out["passed"] is False and rate["status"] == "fail", out
+    measured = float(rate["detail"].split(" Hz")[0].split()[-1])
+    assert 0.9 / cfg.loop.period_s <= measured <= 1.1 / cfg.loop.period_s, rate["detail"]
+    assert "loop.period_s" in rate["fix"]
+    # No sensor on this cell: its checks are skipped, shown as skipped, and not counted as passed.
+    assert "sensor_port" in out["skipped"]
+    assert all(not c["passed"] for c in out["checks"] if c["status"] == "skipped")

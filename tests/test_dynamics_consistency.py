@@ -19,7 +19,8 @@ import pytest
 
 from cell.model.dynamics.consistency import is_consistent, params_from_theta, pseudo_inertia, theta_from_params
 from cell.model.dynamics.friction import EXTRA_TERMS, term_names
-from cell.model.dynamics.physics import IdentificationConfig, P1Model, P2Model, P2Params, identify_p2
+from cell.model.dynamics.physics import P1Model, identify_p2
+from cell.model.dynamics.rigid_body import IdentificationConfig, P2Model, P2Params
 from cell.model.specs import load_robot_spec, robot_model
 from drivers.errors import ConfigError
 

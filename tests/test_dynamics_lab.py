@@ -11,10 +11,10 @@ import yaml
 from cell.data.dataset import load_split
 from cell.model.dynamics.artefact import load_model
 from cell.model.dynamics.learned import LearnedModel
+from cell.model.specs import robot_by_name
 from tasks.lab.bench import bench_model
 from tasks.lab.collect import collect
 from tasks.lab.evaluate import evaluate
-from tasks.lab.robot import lab_robot
 from tasks.lab.train import train
 
 
@@ -24,7 +24,7 @@ def tiny_dataset(tmp_path_factory):
     from sim.cell import make_sim_cell
 
     cfg = load_config()
-    robot = lab_robot(cfg)
+    robot = robot_by_name(cfg)
     out = tmp_path_factory.mktemp("lab") / "data"
     ex = out.parent / "ex.yaml"
     ex.write_text(yaml.safe_dump({"max_configs": 4, "speeds": [0.7, 1.0],
@@ -52,7 +52,7 @@ def test_collect_writes_a_valid_dataset_through_the_control_loop(tiny_dataset):
 def test_train_evaluate_and_bench_on_the_tiny_dataset(tiny_dataset, tmp_path):
     cfg, out, _ = tiny_dataset
     res = train(cfg, out / "dataset.yaml", tmp_path / "h1", kind="H1", derivatives="causal")
-    model = load_model(tmp_path / "h1", lab_robot(cfg))
+    model = load_model(tmp_path / "h1", robot_by_name(cfg))
     assert isinstance(model, LearnedModel) and model.meta.features["derivatives"] == "causal"
     assert res["samples"] >= 6000 and len(res["train_rmse_per_joint_nm"]) == 6
     ev = evaluate(cfg, out / "dataset.yaml", tmp_path / "eval", train_samples=4000, large_samples=6000,

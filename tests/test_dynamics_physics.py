@@ -8,15 +8,8 @@ import pytest
 
 from cell.model.dynamics.artefact import load_model, save_model
 from cell.model.dynamics.base import TorqueModel
-from cell.model.dynamics.physics import (
-    IdentificationConfig,
-    P1Model,
-    P2Model,
-    base_parameters,
-    full_regressor,
-    identify_p2,
-    nominal_parameters,
-)
+from cell.model.dynamics.physics import P1Model, base_parameters, full_regressor, identify_p2
+from cell.model.dynamics.rigid_body import IdentificationConfig, P2Model, nominal_parameters
 
 TRUE_BM = np.array([0.6, 0.6, 0.3, 0.06, 0.06, 0.06])
 TRUE_CM = np.array([5.0, 5.0, 3.5, 1.0, 1.0, 0.8])
@@ -56,11 +49,11 @@ def true_model(robot_module):
 
 @pytest.fixture(scope="module")
 def robot_module():
-    from cell.config import load_config, resolve
-    from cell.model.robot import load_robot
+    from cell.config import load_config
+    from cell.model.specs import cell_robot
 
     cfg = load_config()
-    return load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
+    return cell_robot(cfg)
 
 
 def true_torque(model: pin.Model, q, dq, ddq) -> np.ndarray:

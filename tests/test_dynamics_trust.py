@@ -165,11 +165,11 @@ def test_coverage_dict_round_trip_and_inconsistent_shapes():
 # ------------------------------------------------------------------------------------------ fitted hybrids
 @pytest.fixture(scope="module")
 def robot_module():
-    from cell.config import load_config, resolve
-    from cell.model.robot import load_robot
+    from cell.config import load_config
+    from cell.model.specs import cell_robot
 
     cfg = load_config()
-    return load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
+    return cell_robot(cfg)
 
 
 @pytest.fixture(scope="module")

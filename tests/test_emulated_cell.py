@@ -103,7 +103,7 @@ def test_wipe_over_the_wire_meets_the_in_process_figures(capsys):
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert code == 0, summary
     assert summary["cell"] == "emulated" and not summary["safety_stop"]
-    assert summary["force_mae_n"] <= 2.0 and summary["force_std_n"] <= 2.0
+    assert summary["force_tracking_mae_n"] <= 2.0 and summary["force_tracking_std_n"] <= 2.0
 
 
 def test_status_over_the_wire(capsys):
@@ -161,3 +161,12 @@ def test_ctrl_c_in_a_terminal_stops_the_arm_and_keeps_the_recording(tmp_path):
         time.sleep(0.1)
     else:
         pytest.fail("a process of the interrupted run is still alive")
+
+
+def test_a_run_over_the_wire_reports_its_period_jitter_and_missed_deadlines(emulated, cfg, robot, tmp_path):
+    result, _ = run(emulated, cfg, robot, Injector(emulated, at=-1, command="", cycles=60).task, tmp_path)
+    assert result.outcome == "done", result.reason
+    timing = result.timing
+    for key in ("missed_deadlines", "resyncs", "period_ms_p50", "period_ms_max", "period_jitter_ms_p99"):
+        assert key in timing, timing
+    assert timing["period_ms_max"] >= timing["period_ms_p50"] > 0 and timing["period_jitter_ms_p99"] >= 0

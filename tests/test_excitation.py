@@ -13,7 +13,7 @@ from cell.control.loop import Observation
 from cell.data.excitation.chain import digitised_configurations, eulerian_chain, free_configurations, paper_chain
 from cell.data.excitation.config import ExcitationConfig, FourierConfig
 from cell.data.excitation.fourier import fourier_excitation
-from cell.data.excitation.limits import CollisionChecker, Workspace, check_plan
+from cell.data.excitation.limits import Workspace, check_motion, excitation_checker
 from cell.data.excitation.moves import path_clear, random_moves, transfer
 from cell.data.excitation.sweep import sweep_excitation
 from drivers.configio import load_dataclass
@@ -47,7 +47,7 @@ def test_paper_ranges_are_restrictions_inside_the_hardware_limits(robot):
 
 def test_colliding_configurations_are_dropped(robot, cfg):
     ex = ExcitationConfig()
-    cc = CollisionChecker(robot, cfg, ex)
+    cc = excitation_checker(robot, cfg, ex)
     ws = Workspace(robot, cfg, ex)
     home = np.asarray(cfg.robot.home)
     assert cc.free(home)
@@ -67,9 +67,9 @@ def test_the_table_only_counts_where_the_scene_has_one(robot, cfg):
     into_table = np.array([0.0, np.radians(80), np.radians(90), 0.0, np.radians(90), 0.0])
     free_cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, kind="free"))
     ex = ExcitationConfig()
-    assert "table" not in CollisionChecker(robot, free_cfg, ex).fixtures
-    assert "table" in CollisionChecker(robot, cfg, ex).fixtures
-    assert not any("table" in p for p in CollisionChecker(robot, free_cfg, ex).colliding_pairs(into_table))
+    assert "table" not in excitation_checker(robot, free_cfg, ex).fixtures
+    assert "table" in excitation_checker(robot, cfg, ex).fixtures
+    assert not any("table" in p for p in excitation_checker(robot, free_cfg, ex).colliding_pairs(into_table))
 
 
 def test_eulerian_chain_uses_every_ordered_pair_once():
@@ -89,7 +89,7 @@ def test_paper_chain_is_continuous_free_and_within_limits(robot, cfg):
     for a, b in zip(plan.segments[:-1], plan.segments[1:], strict=True):
         step = np.abs(b.q[0] - a.q[-1])
         assert np.all(step <= robot.limits.velocity * DT)  # no jumps between moves
-    assert check_plan(plan, robot, cfg, SMALL) == []
+    assert check_motion(plan, robot, cfg, SMALL) == []
 
 
 def test_paper_chain_meets_a_sample_budget(robot, cfg):
@@ -113,7 +113,7 @@ def test_fourier_excitation_respects_limits_and_starts_at_rest(robot, cfg):
     assert np.all(np.abs(ddq).max(axis=0) <= ws.amax * 1.05)
     assert np.abs(dq[:3]).max() < 0.01 and np.abs(dq[-3:]).max() < 0.01  # fades in and out at rest
     assert np.ptp(q, axis=0)[:3].min() > 0.05  # and it does excite the main joints
-    assert check_plan(plan, robot, cfg, SMALL) == []
+    assert check_motion(plan, robot, cfg, SMALL) == []
 
 
 def test_sweeps_hold_slow_constant_speeds_around_the_working_posture(robot, cfg):
@@ -133,7 +133,7 @@ def test_sweeps_hold_slow_constant_speeds_around_the_working_posture(robot, cfg)
     steady = np.all(np.abs(np.diff(dq, axis=0)) < 1e-9, axis=1)
     assert steady.mean() > 0.6
     assert np.median(speed[1:][steady]) < 0.03 and np.mean(speed[1:][steady] < 0.01) > 0.2
-    assert check_plan(plan, robot, cfg, SMALL) == []
+    assert check_motion(plan, robot, cfg, SMALL) == []
 
 
 def test_sweeps_refuse_a_centre_in_collision(robot, cfg):
@@ -148,14 +148,14 @@ def test_random_test_moves_are_another_family(robot, cfg):
     assert sorted({s.traj for s in plan.segments}) == [0, 1, 2, 3]
     first, again = [np.vstack([s.q for s in plan.segments if s.traj == t]) for t in (0, 1)]
     np.testing.assert_allclose(first[-1], again[0], atol=1e-9)  # a repeat runs back from where it ended
-    assert check_plan(plan, robot, cfg, SMALL) == []
+    assert check_motion(plan, robot, cfg, SMALL) == []
 
 
 def test_transfer_goes_around_when_the_straight_path_is_blocked(robot, cfg):
     ex = ExcitationConfig()
     a = np.radians([-120.0, 40.0, 60.0, 0.0, 90.0, 0.0])
     b = np.radians([150.0, 40.0, 60.0, 0.0, 90.0, 0.0])
-    cc = CollisionChecker(robot, cfg, ex)
+    cc = excitation_checker(robot, cfg, ex)
     ws = Workspace(robot, cfg, ex)
     assert cc.free(a) and cc.free(b) and not path_clear(a, b, cc, ws, ex.path_step_rad)
     legs = transfer(a, b, robot, cfg, ex, DT)
@@ -199,7 +199,7 @@ def test_training_plan_adds_sweeps_around_the_given_posture(robot, cfg):
     assert sum(len(s.q) for s in sweeps) >= 1500 and plan.info["sweep"]["centre"] == np.round(centre, 4).tolist()
     q = np.vstack([s.q for s in plan.segments])
     assert np.max(np.abs(np.diff(q, axis=0))) < 0.05  # one continuous motion: the sweeps follow on
-    assert check_plan(plan, robot, cfg, SMALL) == []
+    assert check_motion(plan, robot, cfg, SMALL) == []
     with pytest.raises(ConfigError, match="working posture"):
         training_plan(robot, cfg, SMALL, DT, 3000, "fourier", sweep_share=0.5)
 
@@ -207,7 +207,7 @@ def test_training_plan_adds_sweeps_around_the_given_posture(robot, cfg):
 @pytest.mark.parametrize("tool", ["wipe", "peg"])
 def test_each_tools_working_posture_is_free_and_above_its_task_start(cfg, tool):
     from app.tasks_registry import SWEEP_LIFT_M, TASK_TOOLS, build_task, robot_for, working_posture
-    from tasks.lab.robot import lab_robot
+    from cell.model.specs import robot_by_name
 
     robot = robot_for(cfg, tool)
     q = working_posture(cfg, tool, robot)
@@ -215,4 +215,4 @@ def test_each_tools_working_posture_is_free_and_above_its_task_start(cfg, tool):
     lift = robot.tcp_pose(q).translation - robot.tcp_pose(task.q_start).translation
     np.testing.assert_allclose(lift, [0.0, 0.0, SWEEP_LIFT_M], atol=1e-3)
     ex = ExcitationConfig()
-    assert CollisionChecker(lab_robot(cfg), cfg, ex).free(q) and Workspace(lab_robot(cfg), cfg, ex).inside(q)
+    assert excitation_checker(robot_by_name(cfg), cfg, ex).free(q) and Workspace(robot_by_name(cfg), cfg, ex).inside(q)

@@ -30,7 +30,8 @@ def test_the_page_holds_measured_values_and_names_the_missing_ones(tmp_path, cap
     bench = tmp_path / "bench"
     write(bench / "faults.json", {"failures": 0, "faults": {"link_loss": {"detection_periods": 0},
                                                             "stale_robot_data": {"detection_periods": 13}}})
-    write(bench / "peg-in-hole-seed1.json", {"success_rate": 0.98, "median_time_s": 13.714, "mae_my_nm": 0.1081})
+    write(bench / "peg-in-hole-seed1.json", {"success_rate": 0.98, "median_time_s": 13.714,
+                                             "virtual_vs_sensor_my_mae_nm": 0.1081})
     write(bench / "peg-in-hole-seed3.json", {"success_rate": 1.0, "median_time_s": 13.6})
     write(bench / "peg-in-hole-sensor-seed1.json", {"success_rate": 0.5})  # a variant: not the default's row
     out = tmp_path / "docs" / "figures.md"
@@ -38,13 +39,13 @@ def test_the_page_holds_measured_values_and_names_the_missing_ones(tmp_path, cap
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     page = out.read_text()
 
-    assert "| faults: failures | 0 | 0 | `main.py bench faults --json` | `faults.json` |" in page
+    assert "| faults: failures | 0 | pass | 0 | `main.py bench faults --json` | `faults.json` |" in page
     assert "| 13 |" in row_of(page, "faults: stale robot data (periods)")
     rate = row_of(page, "peg-in-hole, virtual sensor: success rate")
     assert "0.98 (seed 1), 1 (seed 3)" in rate and "`peg-in-hole-seed1.json`, `peg-in-hole-seed3.json`" in rate
     assert "13.7 (seed 1), 13.6 (seed 3)" in row_of(page, "peg-in-hole, virtual sensor: median time (s)")
     my = row_of(page, "peg-in-hole, virtual vs F/T: My MAE (N m)")
-    assert "0.108 (seed 1), no `mae_my_nm` in the file (seed 3)" in my
+    assert "0.108 (seed 1), no `virtual_vs_sensor_my_mae_nm` in the file (seed 3)" in my
     assert "| 0.5 (seed 1) |" in row_of(page, "peg-in-hole, F/T sensor: success rate")
     missing = row_of(page, "collision: false alarms (per 10 min of free motion)")
     assert "not measured (run: `main.py bench collision --seed 11 --json`)" in missing
@@ -55,6 +56,7 @@ def test_the_page_holds_measured_values_and_names_the_missing_ones(tmp_path, cap
 
 def test_an_empty_bench_folder_gives_a_page_of_not_measured_rows(tmp_path):
     out = tmp_path / "figures.md"
+    (tmp_path / "none").mkdir()
     assert main(["-q", "figures", "--bench-dir", str(tmp_path / "none"), "--out", str(out)]) == 0
     rows = [line for line in out.read_text().splitlines() if line.startswith("| ") and "---" not in line][1:]
     assert len(rows) == len(FIGURES)

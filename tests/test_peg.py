@@ -68,7 +68,22 @@ class TestContactStates:
 
 class TestConfig:
     def test_defaults_are_valid(self):
-        load_peg_config(None, "tasks.peg")
+        from app.tasks_registry import peg_head_on_speeds
+        from cell.control.guarded import GuardedSettings, check_speeds
+
+        cfg = load_peg_config(None, "tasks.peg")
+        assert cfg == PegConfig()  # nothing configured: the dataclass's defaults, and they validate
+        # The thresholds stack as the task's state machine reads them: a touch before a contact before
+        # the probe's hold before the task's own force limit.
+        assert cfg.touch_force_n <= cfg.contact_force_n < cfg.probe_force_n < cfg.max_force_n
+        assert cfg.contact_force_n < cfg.insert_force_n < cfg.max_force_n
+        assert cfg.comply_deadband_nm < cfg.side_moment_nm < cfg.max_moment_nm
+        # Every head-on speed stays under guarded motion's bound for the task's force limit.
+        bound = check_speeds(GuardedSettings(), peg_head_on_speeds(cfg), cfg.max_force_n, "tasks.peg")
+        assert cfg.approach_speed_mps <= bound
+        # The feed slows where a peg can wedge, and more at a tighter fit.
+        assert cfg.feed_speed(0.0, cfg.free_insert_speed_mps) == cfg.wedge_speed_mps < cfg.free_insert_speed_mps
+        assert cfg.tight_feed_speed(0.000025) < cfg.tight_feed_speed(0.00005) <= cfg.tight_insert_speed_mps
 
     def test_bad_threshold_names_the_field(self):
         with pytest.raises(ConfigError, match="tasks.peg.probe_force_n"):
@@ -107,10 +122,10 @@ def test_wrench_errors_only_over_the_insertion():
         "fz": [0.0, 1.0, 20.0, 0.0], "sensor_fz": [0.0, 2.0, 18.0, 0.0],
     }
     out = wrench_errors(log)
-    assert out["wrench_error_samples"] == 2
-    assert out["mae_mx_nm"] == pytest.approx(0.15)
-    assert out["mae_my_nm"] == pytest.approx(0.2)
-    assert out["mae_fz_n"] == pytest.approx(1.5)
+    assert out["virtual_vs_sensor_samples"] == 2
+    assert out["virtual_vs_sensor_mx_mae_nm"] == pytest.approx(0.15)
+    assert out["virtual_vs_sensor_my_mae_nm"] == pytest.approx(0.2)
+    assert out["virtual_vs_sensor_fz_mae_n"] == pytest.approx(1.5)
 
 
 # --------------------------------------------------------------------------------------- on the sim
@@ -180,9 +195,9 @@ def test_the_surveyed_face_defines_the_hole_frame(cfg):
                            for r, a in ((0.0145, np.pi / 2), (0.0145, -np.pi / 2), (0.0145, np.pi))]
     assert task._fit_face()
     assert task.hole_tilt_deg == pytest.approx(2.0, abs=1e-6)
-    assert np.allclose(task.T.rotation[:, 2], R[:, 2], atol=1e-9)
+    assert np.allclose(task.world_from_hole.rotation[:, 2], R[:, 2], atol=1e-9)
     on_face = centre + R @ np.array([0.005, 0.012, 0.0])
-    assert (task.Ti.act(on_face))[2] == pytest.approx(centre[2], abs=1e-9)
+    assert (task.hole_from_world.act(on_face))[2] == pytest.approx(centre[2], abs=1e-9)
 
 
 def test_a_face_tilted_beyond_the_limit_fails_by_name(cfg):

@@ -14,7 +14,7 @@ from cell.planning.planner import (
     TimedTrajectory,
     ToppraPlanner,
 )
-from cell.planning.ppo import PPOConfig, load_policy, save_policy
+from cell.planning.ppo import PPOConfig, load_policy, load_snapshots, save_policy, save_snapshot
 from cell.planning.ppo_planner import PpoPlanner, PpoSettings, train_policy
 from cell.planning.speed_env import EnvConfig, PathSpeedEnv, SpeedEnvBatch, obs_dim, path_data, random_waypoints
 from drivers.errors import ConfigError
@@ -108,6 +108,9 @@ def test_the_ppo_planner_keeps_the_protocol_and_every_limit(robot, p1, tiny_sett
     pcfg = PlannerConfig(acceleration_limits=[150.0] * 6, torque_margin=0.15)
     params, meta = train_policy(robot, p1, pcfg, None, tiny_settings, tmp_path / "ppo", "P1")
     assert meta["env_steps"] == 3 * 8 * 12 and meta["training_s"] > 0
+    assert len(meta["returns"]) == 3  # one mean episode return per update: the training curve
+    # no snapshot count below 3 updates is kept: the curve is the final policy alone
+    assert load_snapshots(tmp_path / "ppo", obs_dim(tiny_settings.env, 6), tiny_settings.ppo.hidden) == {}
     planner: Planner = PpoPlanner(robot, p1, pcfg, params, tiny_settings)
     assert planner.name == "ppo"
     traj = planner.plan(PATH)
@@ -150,3 +153,16 @@ def test_the_kinematic_planner_keeps_its_speed_and_acceleration_limits(robot, p1
     assert k.plan(PATH, np.full(6, 0.5)).duration > traj.duration
     assert ToppraPlanner(robot, p1, PlannerConfig(acceleration_limits=slow, velocity_fraction=0.75)).plan(
         PATH).duration <= traj.duration * 1.02
+
+
+def test_snapshots_are_stored_by_update_count_and_a_misshapen_one_is_skipped(tmp_path):
+    from cell.planning.ppo import init_params
+
+    params = init_params(np.random.default_rng(0), 10, 16, -0.5)
+    save_policy(tmp_path, params, {"model": "x"})
+    save_snapshot(tmp_path, 20, params)
+    save_snapshot(tmp_path, 100, params)
+    save_snapshot(tmp_path, 7, init_params(np.random.default_rng(0), 11, 16, -0.5))
+    snaps = load_snapshots(tmp_path, 10, 16)
+    assert sorted(snaps) == [20, 100]
+    assert all(np.array_equal(snaps[20][k], params[k]) for k in params)

@@ -219,11 +219,11 @@ def test_a_step_with_a_contact_deeper_than_any_real_one_is_taken_again_precisely
     # the plant takes such a step again from the state before it with a tight CCD tolerance.  A peg
     # started 3 mm inside the fixture's face stands in for the failure here (real contacts stay within
     # 0.05 mm; the bound is MAX_CONTACT_DEPTH_M, 0.1 mm).
-    from cell.model.robot import load_robot
+    from cell.model.specs import cell_robot
     from sim import plant as plant_mod
 
     profile = load_profile(resolve(cfg.plant))
-    peg = load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_peg, cfg.robot.tool_mass, cfg.robot.tool_com)
+    peg = cell_robot(cfg, cfg.robot.tcp_peg)
     scene = replace(cfg.scene, kind="peg")
     x, y = cfg.scene.hole_center
     home = np.asarray(cfg.robot.home, float)

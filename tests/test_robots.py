@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 import yaml
 
-from cell.model.specs import ROBOTS_DIR, available_robots, load_robot_spec, robot_model
+from cell.model.specs import ROBOTS_DIR, available_robots, load_robot_spec, robot_by_name, robot_model
 from drivers.errors import ConfigError
 from main import main
 from tasks.lab.collect import collect
-from tasks.lab.robot import lab_robot
 
 
 def test_both_robots_load_from_their_folders():
@@ -85,15 +84,15 @@ def test_joint_count_is_checked_against_the_urdf(tmp_path):
     assert "robot.yaml: joints is 7 but tm5-700.urdf has 6 joints" in str(exc.value)
 
 
-def test_lab_robot_keeps_the_cell_model_for_the_tm5_and_takes_others_by_name(cfg, robot):
-    tm5 = lab_robot(cfg)
+def test_robot_by_name_keeps_the_cell_model_for_the_tm5_and_takes_others_by_name(cfg, robot):
+    tm5 = robot_by_name(cfg)
     assert tm5.urdf == robot.urdf and tm5.tool.mass == cfg.robot.tool_mass  # today's model, nominal tool
     q = np.array([0.1, -0.4, 1.2, 0.3, 1.0, 0.0])
-    np.testing.assert_allclose(lab_robot(cfg, "tm5-700").gravity(q), robot.gravity(q))
-    ur = lab_robot(cfg, "ur10e")
+    np.testing.assert_allclose(robot_by_name(cfg, "tm5-700").gravity(q), robot.gravity(q))
+    ur = robot_by_name(cfg, "ur10e")
     assert ur.model.name == "ur10e" and ur.tool.mass == 0.0
     with pytest.raises(ConfigError, match="unknown robot 'ur3'"):
-        lab_robot(cfg, "ur3")
+        robot_by_name(cfg, "ur3")
 
 
 def test_collect_refuses_another_robot(cfg, tmp_path, capsys):

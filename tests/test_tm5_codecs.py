@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 from pymodbus.client import ModbusTcpClient
 
 from drivers.errors import ConfigError
-from drivers.tm5.contract import FIELD_WIDTH, TM5ModbusConfig, UserAreaLayout
+from drivers.tm5.config import TM5ModbusConfig
+from drivers.tm5.contract import FIELD_WIDTH, UserAreaLayout
 from drivers.tm5.registers import (
     counter_delta,
     float32_to_regs,
@@ -184,8 +185,8 @@ def test_pose_registers_are_mm_and_degrees() -> None:
 def test_default_layout_is_valid_and_compact() -> None:
     layout = UserAreaLayout()
     layout.validate(WHERE)
-    assert layout.robot_block == (9000, 29)
-    assert layout.host_block == (9100, 15)
+    assert layout.robot_block == (9000, 32)
+    assert layout.host_block == (9100, 17)
     assert UserAreaLayout.from_dict({}, WHERE) == layout
     assert UserAreaLayout.from_dict(None, WHERE) == layout
 
@@ -234,13 +235,13 @@ def test_random_layouts_are_valid_or_name_a_field(d: dict[str, int]) -> None:
 def test_host_field_inside_robot_block_is_refused() -> None:
     # command alone fits in the gap between torque and speed... but that gap is inside the robot block
     with pytest.raises(ConfigError, match=r"\.command \(9020-9020\) lies inside the robot->host block"):
-        UserAreaLayout.from_dict({"speed": 9021, "robot_status": 9033, "host_seq_echo": 9034, "command": 9020},
-                                 WHERE)
+        UserAreaLayout.from_dict({"speed": 9021, "robot_status": 9033, "host_seq_echo": 9034, "lease_holder": 9036,
+                                  "lease_age_ms": 9038, "command": 9020}, WHERE)
 
 
 @pytest.mark.timeout(30)
 def test_layout_rejects_unknown_keys_and_non_integers() -> None:
-    with pytest.raises(ConfigError, match=rf"^{WHERE}\.torqe is not a known key"):
+    with pytest.raises(ConfigError, match=rf"^{WHERE}: unknown key 'torqe'"):
         UserAreaLayout.from_dict({"torqe": 9002}, WHERE)
     with pytest.raises(ConfigError, match=rf"^{WHERE}\.speed must be an integer, got '9014'"):
         UserAreaLayout.from_dict({"speed": "9014"}, WHERE)
@@ -277,13 +278,21 @@ def test_config_defaults_and_nested_layout() -> None:
     ({"host": ""}, "config/cell.yaml: devices.arm.host must be the controller's address"),
     ({"host": "h", "port": 70000}, "config/cell.yaml: devices.arm.port must lie in 1-65535, got 70000"),
     ({"host": "h", "port": "502"}, "config/cell.yaml: devices.arm.port must be an integer"),
-    ({"host": "h", "timeout_s": 0}, "config/cell.yaml: devices.arm.timeout_s must be > 0, got 0.0"),
-    ({"host": "h", "timeout_s": 5}, "config/cell.yaml: devices.arm.timeout_s must be <= 1 s"),
-    ({"host": "h", "stale_after_s": "x"}, "config/cell.yaml: devices.arm.stale_after_s must be a finite number"),
+    ({"host": "h", "unit_id": 256}, "config/cell.yaml: devices.arm.unit_id must lie in 0-255, got 256"),
+    ({"host": "h", "timeout_s": 0}, "config/cell.yaml: devices.arm.timeout_s must lie in 0.001-1 s"),
+    ({"host": "h", "timeout_s": 5}, "config/cell.yaml: devices.arm.timeout_s must lie in 0.001-1 s"),
+    ({"host": "h", "stale_after_s": "x"}, "config/cell.yaml: devices.arm.stale_after_s must be a number"),
+    ({"host": "h", "stale_after_s": 100}, "config/cell.yaml: devices.arm.stale_after_s must lie in 0.001-1 s"),
+    ({"host": "h", "stale_after_s": float("nan")}, "config/cell.yaml: devices.arm.stale_after_s must be finite"),
+    ({"host": "h", "reconnect_initial_s": -1}, "config/cell.yaml: devices.arm.reconnect_initial_s must lie in"),
+    ({"host": "h", "reconnect_max_s": 60}, "config/cell.yaml: devices.arm.reconnect_max_s must lie in 0.001-10 s"),
     ({"host": "h", "reconnect_initial_s": 1.0, "reconnect_max_s": 0.5},
      "config/cell.yaml: devices.arm.reconnect_max_s must be >= reconnect_initial_s"),
+    ({"host": "h", "arm_timeout_s": 0.001}, "config/cell.yaml: devices.arm.arm_timeout_s must lie in 0.01-10 s"),
+    ({"host": "h", "arm_timeout_s": 3600}, "config/cell.yaml: devices.arm.arm_timeout_s must lie in 0.01-10 s"),
     ({"host": "h", "stop_coil": "yes"}, "config/cell.yaml: devices.arm.stop_coil must be true or false"),
-    ({"host": "h", "unit": 1}, "config/cell.yaml: devices.arm.unit is not a known key"),
+    ({"host": "h", "unit": 1}, "config/cell.yaml: devices.arm: unknown key 'unit'"),
+    ({"host": "h", "user_area": [9000]}, "config/cell.yaml: devices.arm.user_area must be a mapping"),
     ({"host": "h", "user_area": {"command": 8000}},
      "config/cell.yaml: devices.arm.user_area.command must lie in 9000-9999, got 8000"),
 ])
@@ -291,3 +300,40 @@ def test_config_errors_name_the_field(settings_: dict[str, object], message: str
     with pytest.raises(ConfigError) as exc:
         TM5ModbusConfig.from_dict(settings_, "config/cell.yaml: devices.arm")
     assert str(exc.value).startswith(message), str(exc.value)
+
+
+@pytest.mark.timeout(30)
+def test_stale_limit_is_a_few_control_periods_at_least() -> None:
+    cfg = TM5ModbusConfig.from_dict({"host": "h", "stale_after_s": 0.02}, "cell.yaml: devices.arm")
+    cfg.check_period(0.004, "cell.yaml: devices.arm")  # 5 periods: fine
+    with pytest.raises(ConfigError, match=r"^cell.yaml: devices.arm.stale_after_s must be >= 3 control periods "
+                                          r"\(0.024 s at 0.008 s\), got 0.02$"):
+        cfg.check_period(0.008, "cell.yaml: devices.arm")
+
+
+@pytest.mark.timeout(30)
+def test_config_errors_are_one_line() -> None:
+    for settings_ in ({"host": "h", "timeout_s": "1\n2"}, {"host": "h", "unit\n": 1}, {"host": ["a\nb"]}):
+        with pytest.raises(ConfigError) as exc:
+            TM5ModbusConfig.from_dict(settings_, "cell.yaml: devices.arm")
+        assert "\n" not in str(exc.value)
+
+
+@pytest.mark.timeout(30)
+def test_open_drivers_lays_fixed_settings_over_the_config_and_floors_the_timeouts() -> None:
+    from drivers.real_cell import open_drivers
+    from tests.tm5_fixtures import LIMITS
+
+    where = "cell.yaml: devices"
+    drivers = open_drivers({"timeout_s": 0.01, "stale_after_s": 0.2}, {"timeout_s": 0.005}, LIMITS, 0.008, where,
+                           arm_fixed={"host": "127.0.0.1", "port": 1502}, sensor_fixed={"port": "/dev/null"},
+                           min_timeout_s=0.05, min_stale_s=0.1)
+    arm = drivers.arm.config
+    assert isinstance(arm, TM5ModbusConfig)
+    assert (arm.host, arm.port, arm.timeout_s, arm.stale_after_s) == ("127.0.0.1", 1502, 0.05, 0.2)
+    assert drivers.sensor_cfg is not None and drivers.sensor_cfg.timeout_s == 0.05
+    assert open_drivers({"host": "h"}, None, LIMITS, 0.008, where).sensor is None
+    with pytest.raises(ConfigError, match=r"^cell.yaml: devices.arm.settings.stale_after_s must be a number"):
+        open_drivers({"host": "h", "stale_after_s": "x"}, None, LIMITS, 0.008, where, min_stale_s=0.1)
+    with pytest.raises(ConfigError, match=r"^cell.yaml: devices.arm.settings.stale_after_s must be >= 3 control"):
+        open_drivers({"host": "h", "stale_after_s": 0.02}, None, LIMITS, 0.008, where)

@@ -322,3 +322,16 @@ def test_a_tool_without_zero_at_tare_keeps_its_models_zero(vs):
         out[name] = src.read(ArmState(t=0.5, q=q, dq=np.zeros(6), tau=tau))
     assert np.linalg.norm(out["zeroed"].torque) < 0.05
     assert np.linalg.norm(out["kept"].torque) > 0.3
+
+
+def test_a_model_made_at_another_period_is_refused_with_one_line(tmp_path):
+    """Windows and causal derivative filters are defined in samples: a model made every 8 ms is refused at
+    15.6 ms (one line naming both periods and what to do); at its own period, or unknown, it is accepted."""
+    from cell.model.dynamics.base import ModelMeta
+    from cell.sensing.virtual_sensor import period_mismatch
+
+    meta = ModelMeta(kind="H1", robot="tm5-700", urdf_sha256="x", joints=6, features={"sample_period_s": 0.008})
+    why = period_mismatch(tmp_path, meta, 0.0156)
+    assert "8.0 ms" in why and "15.6 ms" in why and "prepare" in why and "\n" not in why
+    assert period_mismatch(tmp_path, meta, 0.00805) == ""
+    assert period_mismatch(tmp_path, ModelMeta(kind="H1", robot="tm5-700", urdf_sha256="x", joints=6), 0.0156) == ""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
@@ -12,8 +13,8 @@ import pytest
 from bench.timing import bench_serial
 from drivers.errors import LinkLostError
 from drivers.wacoh.codec import RAW_ZERO
-from drivers.wacoh.config import WacohConfig
-from drivers.wacoh.driver import WacohSensor
+from drivers.wacoh.config import MAX_FAILURES, WacohConfig
+from drivers.wacoh.driver import _LATE_REPLY_S, WacohSensor
 from sim.wacoh_emulator import FaultConfig, WacohEmulator
 from tests.wacoh_fixtures import (
     BIG_OFFSET,
@@ -191,6 +192,90 @@ def test_dropped_replies_give_nan_then_link_lost(
     assert sensor.read().valid  # the link recovers without reconnecting
 
 
+@pytest.mark.parametrize("fault", ["drop_reply_prob", "garbage_prob"])
+@pytest.mark.parametrize("burst", [10, 17, 30])
+def test_after_a_burst_of_bad_records_current_readings_resume_after_a_resync(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor], fault: str, burst: int
+) -> None:
+    """A line that drops or garbles every record for `burst` reads, then recovers.  Ten unanswered requests
+    use up the record numbers (0-9): a reply could then be any of theirs.  The driver stops requesting,
+    discards what arrives until no reply can still come (_LATE_REPLY_S after its last request), then asks
+    afresh: current readings again within that window plus a couple of reads, never a stale one.  (A
+    garbled reply is a reply: it leaves no request unanswered, and reading normally resumes at once.)"""
+    source = Source()
+    emulator = make_emulator(source, offset_lsb=np.zeros(6), noise=0.0, seed=burst)
+    timeout = 0.005
+    sensor = connect(sensors, emulator, timeout_s=timeout, max_consecutive_failures=MAX_FAILURES)
+    assert sensor.read().valid
+    rng = np.random.default_rng(burst)
+
+    def read_current() -> bool:
+        source.value = random_wrench(rng)  # a new value every read: a stale reply would be caught
+        w = sensor.read()
+        if w.valid:
+            assert close_to(w.vector, source.value, 0.5), f"a stale record was returned as current: {sensor.counters()}"
+        else:
+            assert np.all(np.isnan(w.vector))
+        return w.valid
+
+    setattr(emulator.faults, fault, 1.0)
+    assert not any(read_current() for _ in range(burst))
+    setattr(emulator.faults, fault, 0.0)
+    # The resync's window is wall time (_LATE_REPLY_S after the last request): how many reads fall in it
+    # depends on the machine's load, so the bound is on resyncs, with a generous cap on reads.
+    window_reads = math.ceil(_LATE_REPLY_S / timeout) + 1
+    resyncs_before = sensor.resyncs
+    failed = 0
+    while not read_current():
+        failed += 1
+        assert failed <= 20 * (window_reads + 2), sensor.counters()
+    assert sensor.resyncs - resyncs_before <= 2, sensor.counters()
+    assert all(read_current() for _ in range(10))  # and it stays in step
+    if fault == "drop_reply_prob":
+        assert sensor.resyncs >= 1
+
+
+def test_no_request_is_sent_while_resynchronising(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor]
+) -> None:
+    emulator = make_emulator(Source(), offset_lsb=np.zeros(6), noise=0.0)
+    sensor = connect(sensors, emulator, timeout_s=0.005, max_consecutive_failures=MAX_FAILURES)
+    emulator.faults.drop_reply_prob = 1.0
+    for _ in range(10):  # ten unanswered requests: every record number is one of theirs
+        assert not sensor.read().valid
+    emulator.faults.drop_reply_prob = 0.0
+    requests = emulator.commands["R"]
+    assert not sensor.read().valid  # the resync starts: no request, no reading
+    assert sensor.resyncs == 1
+    reads = 1
+    while not sensor.read().valid:
+        reads += 1
+    assert emulator.commands["R"] == requests + 1  # the one fresh request after the quiet window
+    assert reads >= 2
+
+
+def test_systematically_late_replies_are_never_read_as_current_and_end_as_a_lost_link(
+    make_emulator: EmulatorFactory, sensors: list[WacohSensor]
+) -> None:
+    """Every reply 55-60 ms late against a 5 ms timeout: about eleven requests are unanswered at any time,
+    so record numbers repeat among them.  Taking replies about ten requests late as current returned 51
+    of 90 readings stale.  Resynchronising, the driver returns none, and a sensor that never answers in
+    time is a lost link (safe), not a source of old forces."""
+    source = Source()
+    emulator = make_emulator(source, offset_lsb=np.zeros(6), noise=0.0, seed=5,
+                             faults=FaultConfig(reply_delay_s=0.055, reply_delay_jitter_s=0.005))
+    sensor = connect(sensors, emulator, timeout_s=0.005, max_consecutive_failures=MAX_FAILURES)
+    rng = np.random.default_rng(55)
+    reads = 0
+    with pytest.raises(LinkLostError, match=f"no valid record in {MAX_FAILURES} consecutive reads"):
+        while True:
+            source.value = random_wrench(rng)
+            w = sensor.read()
+            reads += 1
+            assert not w.valid, f"read {reads}: a reply 55-60 ms late returned as current ({sensor.counters()})"
+    assert reads == MAX_FAILURES - 1  # the last failure raised
+    assert sensor.resyncs >= 2 and sensor.records_stale > 0  # late replies arrived, and were discarded
+
 def test_a_write_delayed_past_the_reply_timeout_is_not_a_lost_link(
     make_emulator: EmulatorFactory, sensors: list[WacohSensor], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -248,11 +333,11 @@ def test_a_late_reply_is_never_returned_as_the_next_reading(
     source = Source()
     emulator = make_emulator(source, offset_lsb=np.zeros(6), noise=0.0, seed=3,
                              faults=FaultConfig(reply_delay_s=0.012, reply_delay_prob=delay_prob))
-    sensor = connect(sensors, emulator, timeout_s=0.005, max_consecutive_failures=10_000)
+    sensor = connect(sensors, emulator, timeout_s=0.005, max_consecutive_failures=MAX_FAILURES)
     sens = sensor.sensitivities.as_array()
     rng = np.random.default_rng(12)
     valid = 0
-    for _ in range(120):
+    for _ in range(MAX_FAILURES - 10):  # with every reply late, each read fails: stay below the lost link
         source.value = random_wrench(rng)  # a new value every read: a stale reply would be caught
         w = sensor.read()
         if w.valid:
@@ -276,7 +361,7 @@ def test_a_missing_reply_costs_the_configured_timeout(
     """The read loop restarted pyserial's per-read timeout: 5 ms cost 10.3 ms."""
     emulator = make_emulator(Source())
     timeout = 0.005
-    sensor = connect(sensors, emulator, timeout_s=timeout, max_consecutive_failures=10_000)
+    sensor = connect(sensors, emulator, timeout_s=timeout, max_consecutive_failures=MAX_FAILURES)
     emulator.faults.drop_reply_prob = 1.0
     durations = []
     for _ in range(15):

@@ -15,7 +15,7 @@ import pytest
 
 from drivers.errors import DriverError, LinkLostError
 from drivers.interfaces import ArmState, ArmStatus, JointLimits, Lifecycle
-from drivers.tm5.contract import TM5ModbusConfig
+from drivers.tm5.config import TM5ModbusConfig
 from drivers.tm5.modbus import TM5ModbusArm
 from sim.tm5_emulator import TM5Emulator
 

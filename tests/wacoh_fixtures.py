@@ -15,7 +15,11 @@ from drivers.wacoh.driver import WacohSensor
 from sim.wacoh_emulator import REAL_UNIT_SENSITIVITIES, WacohEmulator
 
 S = REAL_UNIT_SENSITIVITIES.as_array()
-FALLBACK = Sensitivities(force=(30.0, 31.0, 32.0), moment=(1500.0, 1600.0, 1700.0))
+# A calibration sheet told apart from the emulator's (within the default band of the nominal values): the
+# emulator's `p` replies do not match it, so a sensor configured with it always uses it.
+FALLBACK = Sensitivities(force=(32.5, 32.6, 32.7), moment=(1620.0, 1625.0, 1630.0))
+# What a sensor without a calibration sheet falls back to: the model's nominal values.
+NOMINAL = Sensitivities()
 BIG_OFFSET = np.array([600.0, -640.0, 655.0, -500.0, 420.0, -655.0])  # LSB, near the +-655 limit
 # Fault-free tests check values, not timing: a generous timeout keeps a loaded CI box from turning a
 # scheduling stall into a NaN they would (rightly) fail on.

@@ -103,8 +103,13 @@ def _beyond_coverage(coverage: Coverage | None, n: int) -> tuple[np.ndarray, np.
 class CollisionDetector:
     """Fast residual, thresholds and the tool force they imply, one control period at a time."""
 
+    # Over a wire: the unseen torque between two samples is bounded by the range of the last this many, ...
+    TORQUE_WINDOW = 4
+    # ... and this share of it, integrated over the time off the period, is the residual's own error.
+    WIRE_ALLOWANCE = 1.0
+
     def __init__(self, model: LearnedModel, robot: RobotModel, dt: float, settings: DetectorSettings,
-                 wrench_point: np.ndarray, over_wire: bool = False) -> None:
+                 wrench_point: np.ndarray, over_wire: bool = False, exact_steps: bool | None = None) -> None:
         n = robot.n
         if len(settings.floor_nm) != n:
             raise ValueError(f"collision.detector.floor_nm needs {n} values (one per joint), "
@@ -113,8 +118,13 @@ class CollisionDetector:
         self.dt = dt
         self.n = n
         gain = min(settings.observer_gain, settings.wire_observer_gain) if over_wire else settings.observer_gain
+        self.gain = gain
+        self.over_wire = over_wire
+        # Over a wire a late read spans several controller cycles and the momentum moved over all of
+        # them: the observer integrates over the time between the samples as it is, never clipped.
         self.observer = MomentumObserver(model, dt, gain,
-                                         max(1, int(round(settings.rebias_window_s / dt))), trapezoid=True)
+                                         max(1, int(round(settings.rebias_window_s / dt))), trapezoid=True,
+                                         exact_steps=over_wire if exact_steps is None else exact_steps)
         self.coverage = model.coverage
         # The levels blended by coverage alone (the sticking regime has its own term below).
         self._levels = (dataclasses.replace(model.coverage, blend=True, stick_speed=0.0)
@@ -152,6 +162,19 @@ class CollisionDetector:
             maxlen=max(1, self.settings.command_window_periods))
         self._cmd_payload: collections.deque[np.ndarray] = collections.deque(
             maxlen=max(1, self.settings.command_window_periods))
+        self._meas_inertial: collections.deque[np.ndarray] = collections.deque(
+            [np.zeros(self.n)], maxlen=max(1, self.settings.command_window_periods))
+        # Over a wire: the residual's error from the time between samples not being one period, and the
+        # measured inertial torque it scales with (held over the same window as the commanded one).
+        self.jitter = np.zeros(self.n)
+        self._step_inertial: collections.deque[np.ndarray] = collections.deque(
+            maxlen=max(1, self.settings.command_window_periods))
+        self._torques: collections.deque[np.ndarray] = collections.deque(maxlen=self.TORQUE_WINDOW)
+        self.step = self.dt  # the time between the last two samples used [s]
+        self.late = False  # the last sample came more than half a period late (a missed controller cycle)
+        self.held = False  # the checks hold their counts on this sample (a repeat or a late one)
+        self.repeats = 0
+        self.late_samples = 0
 
     def rebias(self) -> None:
         """Zero the residual here (arm at rest, no contact): the payload term then counts from this pose."""
@@ -178,7 +201,13 @@ class CollisionDetector:
         if self.coverage is not None and self._levels is not None:
             # Where the training data was sparse the hybrid's level does not hold: the physics part's does.
             w = self.coverage.weight_one(q, dq, ddq, min_count=s.coverage_min_count, stick=False)
-            thr += s.sigma_factor * self._levels.sigma(dq[None, :], w[None, :])[0]
+            factor: float | np.ndarray = s.sigma_factor
+            if s.rest_sigma_factor is not None and s.stick_speed > 0:
+                # At rest the model's level is mostly the stuck friction's spread, which the zeroing at rest
+                # removed and the static band term bounds: counted once there, not sigma_factor times.
+                moving = np.minimum(1.0, np.abs(dq) / s.stick_speed)
+                factor = s.rest_sigma_factor + (s.sigma_factor - s.rest_sigma_factor) * moving
+            thr += factor * self._levels.sigma(dq[None, :], w[None, :])[0]
         if self._beyond is not None:
             # Beyond the joint speeds the model was trained at its error is unknown: the physics part's
             # level at the trained edge, grown in proportion to the speed (a viscous-like error).
@@ -191,8 +220,9 @@ class CollisionDetector:
         if s.inertia_uncertainty > 0:
             if self._cmd_inertial:
                 inertial = np.max(np.asarray(self._cmd_inertial), axis=0)
-            else:  # no command stream (a detector fed states only): the measured motion's
-                inertial = np.abs(self.observer.inertial)
+            else:  # no command stream (a detector fed states only): the measured motion's, held over the
+                # same window (the estimate swings through zero while a hard stop rings)
+                inertial = np.max(np.asarray(self._meas_inertial), axis=0)
             thr += s.inertia_uncertainty * inertial
         if s.payload_uncertainty_kg > 0:
             g = self._payload_gravity(q)
@@ -208,15 +238,53 @@ class CollisionDetector:
             raise SafetyStopError("collision detector: non-finite joint state (q, q' or torque): cannot check "
                                   "for collisions")
         # Over a wire the host may read the controller's previous sample again (no new cycle yet): a
-        # repeat carries no new momentum, and integrating its torque over another period would.
-        if self._last is not None and np.array_equal(q, self._last.q) and np.array_equal(state.tau, self._last.tau):
+        # repeat carries no new momentum, and integrating its torque over another period would.  The
+        # robot's counter says so even when a read tore between two cycles (joints from the newer one).
+        last = self._last
+        if last is not None and (
+                (np.array_equal(q, last.q) and np.array_equal(state.tau, last.tau))
+                or (self.over_wire and (state.seq == last.seq != 0 or state.t <= last.t))):
+            self.repeats += 1
+            self.held = True  # the same sample checked again would count as another period over
             return self.residual
         self._last = state
         self._q = q
         self.residual = self.observer.update(state)
+        self._meas_inertial.append(np.abs(self.observer.inertial))
         self.threshold = self.margin * self.thresholds(q, np.asarray(state.dq, float), self.observer.acceleration)
-        self.force = self.wrench_map.map(q, self.residual).wrench[:3]
+        r = self.residual
+        if self.over_wire and last is not None:
+            self._wire_allowance(state, last)
+            self.threshold = self.threshold + self.jitter
+            # The tool force from what the residual holds beyond the wire's own error: a late read's
+            # aliasing must not read as a force.
+            r = np.sign(r) * np.maximum(0.0, np.abs(r) - self.jitter)
+        self.held = self.late
+        self.force = self.wrench_map.map(q, r).wrench[:3]
         return self.residual
+
+    def _wire_allowance(self, state: ArmState, last: ArmState) -> None:
+        """Widen the thresholds by the residual's error from an irregular step (over a wire).
+
+        The observer integrates the measured torque between two samples by the trapezoidal rule.  Over one
+        controller period that is what the model's levels were measured with; over a longer step the
+        torque changes unseen in between (stop-and-go while the host is late: the controller runs out of
+        targets, then catches up), and over a shorter one the time stamp's own error weighs more.  The
+        unseen torque is bounded by what the samples around it span: the measured torque's range over
+        the last few samples, or the inertial torque the step's own speed change implies.  The integral
+        of that bound over the time off the period enters the residual times the gain, then decays with it."""
+        h = float(state.t - last.t)
+        self.step = h
+        self.late = h > 1.5 * self.dt
+        self.late_samples += int(self.late)
+        a = (np.asarray(state.dq, float) - np.asarray(last.dq, float)) / h
+        self._torques.append(np.asarray(state.tau, float))
+        taus = np.asarray(self._torques)
+        # Each entry of M may carry the unseen change: sum_k |M_jk| |a_k|, as the commanded term.
+        self._step_inertial.append(np.maximum(np.abs(self.observer.mass) @ np.abs(a), np.ptp(taus, axis=0)))
+        unseen = np.max(np.asarray(self._step_inertial), axis=0)
+        self.jitter = (self.jitter * float(np.exp(-self.gain * h))
+                       + self.WIRE_ALLOWANCE * self.gain * abs(h - self.dt) * unseen)
 
     def commanded(self, q_cmd: np.ndarray) -> None:
         """The target just sent (rad): its second difference is the commanded acceleration."""
@@ -233,14 +301,20 @@ class CollisionDetector:
                                                                 / self.dt, a))
 
     def check_free(self) -> np.ndarray:
-        """Joints (0-based) over their thresholds for `confirm_periods` periods in a row."""
+        """Joints (0-based) over their thresholds for `confirm_periods` periods in a row.  A late sample
+        or a repeated one (over a wire) holds the count: it neither confirms a collision nor clears one building up."""
+        if self.held:
+            return np.zeros(0, np.int64)
         over = np.abs(self.residual) > self.threshold
         self._over = np.where(over, self._over + 1, 0)
         self._force_over = 0
         return np.flatnonzero(self._over >= self.confirm)
 
     def check_contact(self, limit_n: float) -> bool:
-        """Whether the fast tool force has been over `limit_n` for `confirm_periods` periods in a row."""
+        """Whether the fast tool force has been over `limit_n` for `confirm_periods` periods in a row.  A
+        late or repeated sample (over a wire) holds the count, as in free states."""
+        if self.held:
+            return False
         self._over[:] = 0
         self._force_over = self._force_over + 1 if float(np.linalg.norm(self.force)) > limit_n else 0
         return self._force_over >= self.confirm

@@ -138,7 +138,8 @@ class ContactGuard:
         d = self.detector
         d.update(state)
         fast = float(np.linalg.norm(d.force))
-        self.stats.max_fast_force_n = max(self.stats.max_fast_force_n, fast)
+        if not d.held:  # the figures of what was checked (a late or repeated sample over a wire is not)
+            self.stats.max_fast_force_n = max(self.stats.max_fast_force_n, fast)
         if task_state in self.contact_states:
             hit = d.check_contact(self.contact_limit_n)
             joints: list[int] = []
@@ -149,7 +150,8 @@ class ContactGuard:
             hit = over.size > 0
             ratios = d.ratios()
             ratio = float(ratios.max())
-            self.stats.max_free_ratio = max(self.stats.max_free_ratio, ratio)
+            if not d.held:
+                self.stats.max_free_ratio = max(self.stats.max_free_ratio, ratio)
             joints = [int(j) + 1 for j in over]
             mode = "free"
         if not hit:
@@ -205,8 +207,14 @@ class ContactGuard:
 
     def summary(self) -> dict[str, Any]:
         s = self.stats
-        return {"enabled": True, "detections": s.detections, "reactions": s.reactions,
-                "max_free_ratio": round(s.max_free_ratio, 3), "max_fast_force_n": round(s.max_fast_force_n, 1)}
+        d = self.detector
+        out: dict[str, Any] = {"enabled": True, "detections": s.detections, "reactions": s.reactions,
+                               "max_free_ratio": round(s.max_free_ratio, 3),
+                               "max_fast_force_n": round(s.max_fast_force_n, 1)}
+        if d.over_wire:
+            # How often the wire's timing held the checks (a late sample) or gave no new sample at all.
+            out.update(late_samples=d.late_samples, repeated_samples=d.repeats)
+        return out
 
 
 def build_guard(cfg: CollisionConfig, model: Any, robot: RobotModel, dt: float, task: str, contact_limit_n: float,

@@ -25,7 +25,7 @@ class GuardedSettings:
 
     enabled: bool = True
     # Peak contact force per unit TCP speed on a rigid obstacle (N per m/s): bench collision's p95
-    # over rigid-plate impacts at 0.05-0.5 m/s (seeds 11 and 12: 9365 and 9293; docs/collision.md).
+    # over rigid-plate impacts at 0.05-0.5 m/s (why: docs/collision.md, "Guarded motion").
     impact_n_per_mps: float = 9300.0
 
     def validate(self, where: str) -> None:

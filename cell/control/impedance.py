@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cell.model.robot import RobotModel
+from drivers.configio import require
 
 
 @dataclass
@@ -19,8 +20,6 @@ class ImpedanceParams:
     k_v: float = 0.0
 
     def validate(self, where: str) -> None:
-        from drivers.configio import require
-
         require(self.m >= 0 and self.b >= 0, f"{where}.m", "and b must be >= 0")
         require(self.m > 0 or self.b > 0, f"{where}.m", "or b must be > 0 (the law divides by them)")
         require(self.k_tau >= 0 and self.k_v >= 0, f"{where}.k_tau", "and k_v must be >= 0")

@@ -132,9 +132,13 @@ class TimingStats:
     period: float
     slow_fraction: float
     samples: list[float] = field(default_factory=list)
+    starts: list[float] = field(default_factory=list)  # perf_counter at each cycle's start
 
     def add(self, seconds: float) -> None:
         self.samples.append(seconds)
+
+    def start(self, t0: float) -> None:
+        self.starts.append(t0)
 
     def report(self) -> dict[str, float | int]:
         if not self.samples:
@@ -148,7 +152,18 @@ class TimingStats:
             "compute_ms_max": float(a.max()),
             "slow_cycles": int(slow.sum()),
             "slow_cycle_threshold_ms": self.slow_fraction * self.period * 1e3,
+            **self._periods(),
         }
+
+    def _periods(self) -> dict[str, float]:
+        """The time between cycle starts against the period: what a wall-clock cell's state samples and
+        targets really were apart (in lock-step with a simulator, only the host's own pace)."""
+        if len(self.starts) < 2:
+            return {}
+        p = np.diff(np.asarray(self.starts)) * 1e3
+        jitter = np.abs(p - self.period * 1e3)
+        return {"period_ms_p50": float(np.percentile(p, 50)), "period_ms_max": float(p.max()),
+                "period_jitter_ms_p99": float(np.percentile(jitter, 99))}
 
 
 @dataclass
@@ -213,6 +228,7 @@ class ControlLoop:
                     self.task.abort(reason)
                     break
                 t0 = time.perf_counter()
+                self.timing.start(t0)
                 state = self.arm.read_state()
                 # The state the force sources read in (the row's `state` is the one after the step):
                 # `replay` scores its virtual-vs-sensor figures on it, as the run did.
@@ -301,7 +317,7 @@ class ControlLoop:
             cycles=cycle,
             sim_time_s=cycle * self.period,
             wall_time_s=time.perf_counter() - wall0,
-            timing={**timing, "missed_deadlines": overruns},
+            timing={**timing, "missed_deadlines": overruns, "resyncs": getattr(self.ticker, "resyncs", 0)},
             collision=self.guard.summary() if self.guard is not None else None,
         )
 

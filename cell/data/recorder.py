@@ -2,14 +2,17 @@
 
 The step log is a folder of Parquet parts (`log/part-00000.parquet`, ...), each written whole and
 renamed into place, so a run killed at any moment leaves every completed chunk readable
-(`pyarrow.parquet.read_table(run/"log")` reads them as one table).
+(`pyarrow.parquet.read_table(run/"log")` reads them as one table).  As each part is closed its sha256
+and row count go into `log/_manifest.json` (readers of the folder skip `_` files), which `verify_log`
+checks: a part damaged on disk is refused, never read as values.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
+import json
 import logging
-import os
 from pathlib import Path
 from typing import Any
 
@@ -17,10 +20,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import yaml
 
+from cell.data.atomic import save_atomic, write_atomic
 from drivers.configio import dumps_strict
-from drivers.errors import ConfigError, RecordingError
+from drivers.errors import ConfigError, DataError, RecordingError
 
 log = logging.getLogger(__name__)
+
+MANIFEST = "_manifest.json"  # in log/; the `_` keeps it out of pyarrow's reads of the folder
+MANIFEST_FORMAT = "tmcell-step-log"
 
 
 def new_run_dir(root: Path, task: str) -> Path:
@@ -54,6 +61,7 @@ class Recorder:
         self._rows: list[dict[str, Any]] = []
         self._parts = 0
         self._columns: list[str] | None = None
+        self._checksums: dict[str, dict[str, Any]] = {}  # part file -> sha256 and rows, as in the manifest
         self.rows_written = 0
         self.closed = False
 
@@ -75,15 +83,25 @@ class Recorder:
         cols = {c: [r.get(c) for r in self._rows] for c in self._columns}
         table = pa.table(cols)
         final = self.log_dir / f"part-{self._parts:05d}.parquet"
-        tmp = final.with_name(f".{final.name}.tmp")  # dot-files are skipped by readers of the folder
         try:
-            pq.write_table(table, tmp)
-            os.replace(tmp, final)
+            # Not synced to disk: the loop cannot wait on it, and a killed run still leaves every part whole.
+            save_atomic(final, lambda tmp: pq.write_table(table, tmp), durable=False)
         except OSError as exc:
             raise RecordingError(f"{final}: cannot write the step log: {exc.strerror or exc}") from None
+        self._checksums[final.name] = {"sha256": _sha256(final), "rows": table.num_rows}
+        self._write_manifest()
         self._parts += 1
         self.rows_written += len(self._rows)
         self._rows = []
+
+    def _write_manifest(self) -> None:
+        """The parts' checksums, replaced whole (a reader sees the previous manifest or this one)."""
+        path = self.log_dir / MANIFEST
+        doc = {"format": MANIFEST_FORMAT, "format_version": 1, "parts": self._checksums}
+        try:
+            write_atomic(path, json.dumps(doc, indent=1) + "\n", durable=False)
+        except OSError as exc:
+            raise RecordingError(f"{path}: cannot write the step log's manifest: {exc.strerror or exc}") from None
 
     def close(self) -> None:
         if self.closed:
@@ -112,3 +130,44 @@ def _write(path: Path, text: str) -> None:
 def read_log(run_dir: Path) -> pa.Table:
     """The whole step log of a run (every completed chunk)."""
     return pq.read_table(Path(run_dir) / "log")
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def verify_log(run_dir: Path) -> bool:
+    """Check every part of a run's step log against its manifest: each listed part present with its sha256,
+    no part unlisted.  One-line DataError otherwise; False (nothing to check) for a recording made before
+    the manifest existed."""
+    log_dir = Path(run_dir) / "log"
+    path = log_dir / MANIFEST
+    if not path.exists():
+        return False
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise DataError(f"{path}: unreadable step-log manifest ({type(exc).__name__})") from None
+    parts = doc.get("parts") if isinstance(doc, dict) and doc.get("format") == MANIFEST_FORMAT else None
+    if not isinstance(parts, dict) or not all(isinstance(v, dict) for v in parts.values()):
+        raise DataError(f"{path}: not a step-log manifest (format {MANIFEST_FORMAT!r} with its parts)")
+    on_disk = {p.name for p in log_dir.glob("*.parquet") if not p.name.startswith((".", "_"))}
+    unlisted = sorted(on_disk - set(parts))
+    if unlisted:
+        raise DataError(f"{log_dir / unlisted[0]}: a step-log part the manifest does not list (added afterwards?)")
+    for name, entry in sorted(parts.items()):
+        part = log_dir / name
+        if name not in on_disk:
+            raise DataError(f"{part}: listed in the step log's manifest but missing")
+        try:
+            actual = _sha256(part)
+        except OSError as exc:
+            raise DataError(f"{part}: cannot read: {exc.strerror or exc}") from None
+        if actual != entry.get("sha256"):
+            raise DataError(f"{part}: checksum mismatch (sha256 {actual[:12]}..., the manifest's "
+                            f"{str(entry.get('sha256'))[:12]}...): the file is damaged")
+    return True

@@ -36,6 +36,7 @@ class Samples:
     names: list[str]
     segment: np.ndarray  # global segment id per row (trajectory-unique), for subsampling by whole moves
     mode: DerivativeMode = "zero_phase"
+    period_s: float | None = None  # the trajectories' median sample period (windows and derivatives depend on it)
 
     def __len__(self) -> int:
         return int(self.q.shape[0])
@@ -55,6 +56,7 @@ class Samples:
         return Samples(
             q=self.q[rows], dq=self.dq[rows], ddq=self.ddq[rows], tau=self.tau[rows],
             starts=np.flatnonzero(new_start), names=self.names, segment=self.segment[rows], mode=self.mode,
+            period_s=self.period_s,
         )
 
 
@@ -79,6 +81,7 @@ def stack(trajs: Sequence[Trajectory], mode: DerivativeMode = "zero_phase", cfg:
     return Samples(
         q=np.concatenate(qs), dq=np.concatenate(vs), ddq=np.concatenate(accs), tau=np.concatenate(taus),
         starts=np.asarray(starts, np.int64), names=[t.name for t in trajs], segment=np.concatenate(segs), mode=mode,
+        period_s=float(np.median(np.concatenate([np.diff(tr.t) for tr in trajs]))) if row > len(trajs) else None,
     )
 
 
@@ -95,3 +98,18 @@ def subsample_segments(s: Samples, n_samples: int, seed: int = 0) -> Samples:
     chosen = ids[order[:k]]
     rows = np.flatnonzero(np.isin(s.segment, chosen))
     return s.take_rows(rows[:n_samples])  # the last segment is cut so the count is never exceeded
+
+
+def holdout_segments(s: Samples, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """(training rows, validation rows): whole segments (moves) held out for early stopping, since
+    neighbouring rows are nearly identical and a row-wise split would validate on the training data.
+    No validation rows (None) for fraction 0 or fewer than 5 segments."""
+    if fraction <= 0:
+        return np.arange(len(s)), None
+    ids = np.unique(s.segment)
+    if len(ids) < 5:
+        return np.arange(len(s)), None
+    rng = np.random.default_rng(seed)
+    val_ids = rng.choice(ids, max(1, int(round(fraction * len(ids)))), replace=False)
+    val = np.isin(s.segment, val_ids)
+    return np.flatnonzero(~val), np.flatnonzero(val)

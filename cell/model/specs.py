@@ -9,15 +9,16 @@ from typing import Literal
 import numpy as np
 import pinocchio as pin
 
-from cell.config import CONFIG_DIR
-from cell.model.dynamics.physics import IdentificationConfig
+from cell.config import CONFIG_DIR, CellConfig, DetectorSettings, resolve
+from cell.model.dynamics.rigid_body import IdentificationConfig
 from cell.model.dynamics.uncertainty import CoverageConfig
-from cell.model.robot import RobotModel, ToolSpec
+from cell.model.robot import RobotModel, ToolSpec, load_robot
 from drivers.configio import join, load_dataclass, read_yaml, require
 from drivers.errors import ConfigError
 
 ROBOTS_DIR = CONFIG_DIR / "robots"
 SPEC_FILE = "robot.yaml"
+CELL_ROBOT = "tm5-700"  # the cell's arm (and the simulated plant's): the model lab's default robot
 
 TorqueSource = Literal["current", "torque"]
 
@@ -48,10 +49,12 @@ class RobotFile:
     joints: int
     description: str
     drive: DriveFile = field(default_factory=DriveFile)
-    # How the model lab identifies this arm's P2 (cell/model/dynamics/physics.py IdentificationConfig).
+    # How the model lab identifies this arm's P2 (cell/model/dynamics/rigid_body.py IdentificationConfig).
     identification: IdentificationConfig = field(default_factory=IdentificationConfig)
     # How a hybrid's learned residual is trusted (cell/model/dynamics/uncertainty.py CoverageConfig).
     learning: CoverageConfig = field(default_factory=CoverageConfig)
+    # The collision detector's settings on this arm (cell/config.py DetectorSettings; main.py detect).
+    collision: DetectorSettings | None = None
 
     def validate(self, where: str) -> None:
         self.identification.validate(join(where, "identification"))
@@ -77,6 +80,7 @@ class RobotSpec:
     torque_source: TorqueSource
     identification: IdentificationConfig = field(default_factory=IdentificationConfig)
     learning: CoverageConfig = field(default_factory=CoverageConfig)
+    collision: DetectorSettings | None = None  # the detector's settings on this arm, when it has its own
 
 
 def available_robots(robots_dir: Path = ROBOTS_DIR) -> list[str]:
@@ -113,10 +117,25 @@ def load_robot_spec(name: str, robots_dir: Path = ROBOTS_DIR) -> RobotSpec:
         name=name, folder=folder, urdf=urdf, flange_frame=spec.flange_frame, joints=spec.joints,
         description=spec.description.strip(), torque_constants=None if gains is None else tuple(gains),
         torque_source=spec.drive.torque_source, identification=spec.identification,
-        learning=spec.learning,
+        learning=spec.learning, collision=spec.collision,
     )
 
 
 def robot_model(spec: RobotSpec, tool: ToolSpec | None = None) -> RobotModel:
     """The nominal model of `spec`'s arm with `tool` mounted (none: a zero-mass tool, the TCP at the flange)."""
     return RobotModel(spec.urdf, tool or ToolSpec(tcp_offset=np.zeros(3)), spec.flange_frame)
+
+
+def cell_robot(cfg: CellConfig, tcp: list[float] | None = None) -> RobotModel:
+    """The cell's arm: the cell config's URDF with its tool's mass, centre of mass and TCP (`tcp`, default the
+    nominal wiping tool's)."""
+    arm = cfg.robot
+    return load_robot(resolve(arm.urdf), arm.tcp_wipe if tcp is None else tcp, arm.tool_mass, arm.tool_com)
+
+
+def robot_by_name(cfg: CellConfig, name: str = CELL_ROBOT) -> RobotModel:
+    """The nominal model the model lab identifies against: for the cell's arm `cell_robot(cfg)`; for another
+    robot (`config/robots/<name>/`) its URDF with no tool."""
+    if name == CELL_ROBOT:
+        return cell_robot(cfg)
+    return robot_model(load_robot_spec(name))

@@ -33,6 +33,7 @@ import toppra.constraint as ta_con
 from toppra.constraint.linear_constraint import canlinear_colloc_to_interpolate
 
 from cell.collision.geometry import CollisionChecker
+from cell.model.dynamics.rigid_body import P2Model
 from cell.model.robot import RobotModel
 from drivers.configio import require
 from drivers.errors import CellError
@@ -61,8 +62,6 @@ def toppra_terms(model: object) -> ToppraTerms | None:
     Rotor inertia matters most: at the accelerations a time-optimal plan reaches, `B_m q''` is as large
     as the rigid body's torque, and leaving it to the iteration would make the path look infeasible.
     """
-    from cell.model.dynamics.physics import P2Model  # the planner only needs the lab's models when given one
-
     p2 = model if isinstance(model, P2Model) else getattr(model, "physics", None)
     if not isinstance(p2, P2Model):
         return None
@@ -118,7 +117,7 @@ class PlannerConfig:
     # Where toppra checks the torque constraint: "interpolation" at both ends of every grid segment,
     # "collocation" (toppra's default) only at its start.  The clamped spline has dp/ds = 0 at s = 0, so a
     # check at the start alone leaves the first segment's acceleration free: the profile shot up and stalled
-    # within 20 ms, and 7 of 69 first runs (bench planning, seeds 1-3) overshot a motor there (docs/planning.md).
+    # within 20 ms, and first runs overshot a motor there (why: docs/planning.md, "Start transients").
     torque_discretization: str = "interpolation"
     # The plant's torque overshoots the model's as the arm leaves rest (servo lag, friction breaking away,
     # the controller's cubic interpolation of the set-points): the highest first-run peaks were all 64-88 ms

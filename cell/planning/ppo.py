@@ -98,8 +98,11 @@ def _make_update(pc: PPOConfig) -> tuple[Callable[..., Any], Any]:
 
 def train(
     env: Any, sample_paths: Callable[[np.random.Generator, int], list[Any]], n_obs: int, knots: int, pc: PPOConfig,
+    snapshots: tuple[int, ...] = (),
 ) -> tuple[Params, dict[str, Any]]:
-    """PPO on `env` (a `SpeedEnvBatch`): each update rolls out `n_envs` fresh paths from start to end."""
+    """PPO on `env` (a `SpeedEnvBatch`): each update rolls out `n_envs` fresh paths from start to end.  The
+    policy after each update count in `snapshots` is kept (`info["snapshots"]`), so what the training budget
+    buys can be measured afterwards."""
     import jax.numpy as jnp
 
     rng = np.random.default_rng(pc.seed)
@@ -109,6 +112,7 @@ def train(
     state = opt.init(jp)
     t0 = time.perf_counter()
     history: list[float] = []
+    kept: dict[int, Params] = {}
     B, K = pc.n_envs, knots
     for u in range(pc.updates):
         p_np = {k: np.asarray(v) for k, v in jp.items()}
@@ -144,11 +148,14 @@ def train(
                 idx = order[i * mb:(i + 1) * mb]
                 jp, state = update(jp, state, *(jnp.asarray(a[idx], jnp.float32) for a in flat))
         history.append(float(rew.sum(1).mean()))
+        if u + 1 in snapshots:
+            kept[u + 1] = {k: np.asarray(v, np.float32) for k, v in jp.items()}
         if u % 25 == 0 or u == pc.updates - 1:
             log.info("ppo update %d/%d: mean episode return %.3f", u + 1, pc.updates, history[-1])
     params = {k: np.asarray(v, np.float32) for k, v in jp.items()}
     info = {"training_s": time.perf_counter() - t0, "env_steps": pc.updates * B * K,
-            "final_return": float(np.mean(history[-10:])), "first_return": history[0]}
+            "final_return": float(np.mean(history[-10:])), "first_return": history[0],
+            "returns": np.round(history, 3).tolist(), "snapshots": kept}
     return params, info
 
 
@@ -157,6 +164,24 @@ def save_policy(path: Path, params: Params, meta: dict[str, Any]) -> None:
     with open(path / "policy.npz", "wb") as f:
         np.savez(f, **params)  # type: ignore[arg-type]  # numpy's stub takes the keywords for allow_pickle
     (path / "policy.json").write_text(json.dumps({"format": FORMAT, **meta}, indent=1), encoding="utf-8")
+
+
+def save_snapshot(path: Path, updates: int, params: Params) -> None:
+    """The policy as it was after `updates` updates, beside the final one."""
+    with open(path / f"policy-{updates:05d}.npz", "wb") as f:
+        np.savez(f, **params)  # type: ignore[arg-type]  # as in save_policy
+
+
+def load_snapshots(path: Path, n_obs: int, hidden: int) -> dict[int, Params]:
+    """The saved snapshots by update count (those whose shapes fit; none when training kept none)."""
+    want = {k: v.shape for k, v in init_params(np.random.default_rng(0), n_obs, hidden, 0.0).items()}
+    out: dict[int, Params] = {}
+    for f in sorted(path.glob("policy-*.npz")):
+        with np.load(f) as z:
+            params = {k: z[k] for k in z.files}
+        if {k: v.shape for k, v in params.items()} == want:
+            out[int(f.stem.split("-")[1])] = params
+    return out
 
 
 def load_policy(path: Path, n_obs: int, hidden: int) -> tuple[Params, dict[str, Any]]:

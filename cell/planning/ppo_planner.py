@@ -29,10 +29,12 @@ from cell.planning.planner import (
     ToppraTerms,
     TorqueFn,
 )
-from cell.planning.ppo import Params, PPOConfig, act_deterministic, load_policy, save_policy, train
+from cell.planning.ppo import Params, PPOConfig, act_deterministic, load_policy, save_policy, save_snapshot, train
 from cell.planning.speed_env import EnvConfig, PathData, SpeedEnvBatch, obs_dim, path_data, random_waypoints
 
 log = logging.getLogger(__name__)
+# Update counts whose policy is kept beside the final one: PPO's time against its training budget.
+SNAPSHOTS = (10, 20, 30, 60, 100, 150, 200, 300, 500, 1000)
 SLOWDOWN_STEP = 0.97  # per fallback iteration, of every knot speed
 MAX_SLOWDOWNS = 80  # 0.97^80 ~ 0.09
 
@@ -108,11 +110,17 @@ def train_policy(robot: RobotModel, torque_fn: TorqueFn, cfg: PlannerConfig, ter
     sample = training_paths(robot, base.vlim, limit, base.terms, settings, only)
     log.info("training the PPO planner on %s: %d updates x %d paths x %d knots", model_name,
              settings.ppo.updates, settings.ppo.n_envs, settings.env.knots)
-    params, info = train(env, sample, obs_dim(settings.env, robot.n), settings.env.knots, settings.ppo)
+    params, info = train(env, sample, obs_dim(settings.env, robot.n), settings.env.knots, settings.ppo,
+                         tuple(u for u in SNAPSHOTS if u < settings.ppo.updates))
+    snapshots = info.pop("snapshots")
     meta = {"model": model_name, "env": asdict(settings.env), "ppo": asdict(settings.ppo),
             "planner": asdict(cfg), "only": None if only is None else np.asarray(only).round(6).tolist(), **info}
     if out is not None:
+        for old in out.glob("policy-*.npz"):
+            old.unlink()  # a previous training's snapshots would mix into this one's curve
         save_policy(out, params, meta)
+        for u, snap in snapshots.items():
+            save_snapshot(out, u, snap)
         log.info("PPO policy saved to %s (%.1f s of training)", out, info["training_s"])
     return params, meta
 

@@ -14,13 +14,13 @@ the offset is K u(q_t) instead, so `compensate(w, q, q_tare)` = w - K (u(q) - u(
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from cell.data.atomic import write_atomic
 from cell.model.robot import RobotModel
 from drivers.errors import DataError
 
@@ -90,10 +90,7 @@ def save(tg: ToolGravity, folder: Path, extra: dict[str, Any] | None = None) -> 
     folder.mkdir(parents=True, exist_ok=True)
     doc = {"format": "tmcell-tool-gravity", "format_version": 1, "K": tg.K.tolist(), "w0": tg.w0.tolist(),
            "fit_rms": tg.fit_rms.tolist(), **tg.summary(), **(extra or {})}
-    tmp = folder / f".{FILE}.tmp"
-    tmp.write_text(json.dumps(doc, indent=1))
-    os.replace(tmp, folder / FILE)
-    return folder / FILE
+    return write_atomic(folder / FILE, json.dumps(doc, indent=1))
 
 
 def load(folder: Path) -> ToolGravity:

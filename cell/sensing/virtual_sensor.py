@@ -12,7 +12,7 @@ import datetime
 import hashlib
 import json
 import logging
-import os
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,14 +21,16 @@ import numpy as np
 import xgboost as xgb
 
 from cell.config import VirtualSensorConfig
+from cell.data.atomic import save_atomic, write_atomic
 from cell.model.dynamics.artefact import load_model
+from cell.model.dynamics.base import ModelMeta
 from cell.model.dynamics.learned import LearnedModel
-from cell.model.dynamics.physics import urdf_sha256
+from cell.model.dynamics.rigid_body import urdf_sha256
 from cell.model.robot import RobotModel
 from cell.sensing.observer import TorqueObserver, make_observer
 from cell.sensing.wrench_map import LEARNED_INPUTS, ContactMap, JacobianMap, LearnedMap
 from drivers.configio import json_default, read_versioned_json
-from drivers.errors import DataError
+from drivers.errors import ConfigError, DataError
 from drivers.interfaces import ArmState, Wrench
 
 log = logging.getLogger(__name__)
@@ -80,16 +82,12 @@ def save_calibration(cal: Calibration, path: Path) -> Path:
         files[obs] = {}
         for axis, bst in axes.items():
             name = f"learned_{obs}_{axis}.ubj"
-            tmp = path / f".tmp-{name}"
-            bst.save_model(str(tmp))
-            os.replace(tmp, path / name)
+            save_atomic(path / name, bst.save_model)
             files[obs][axis] = name
     doc = {k: v for k, v in asdict(cal).items() if k != "boosters"}
     doc.update(format=FORMAT, format_version=FORMAT_VERSION, learned=files,
                created=cal.created or datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"))
-    tmp = path / ".calibration.json.tmp"
-    tmp.write_text(json.dumps(doc, indent=1, default=json_default))
-    os.replace(tmp, path / "calibration.json")
+    write_atomic(path / "calibration.json", json.dumps(doc, indent=1, default=json_default))
     return path
 
 
@@ -159,8 +157,13 @@ class VirtualForceSource:
     name = "virtual"
 
     def __init__(self, observer: TorqueObserver, mapping: JacobianMap | LearnedMap, label: str = "",
-                 zero_at_tare: bool = True) -> None:
+                 zero_at_tare: bool = True, touch: TorqueObserver | None = None, touch_band_n: float = 0.0) -> None:
         self.observer = observer
+        # The fast channel for touches (VirtualSensorConfig.touch_gain), used while `contact_expected()`
+        # (set by whoever knows the task's state: the runner, replay) says a touch may come.
+        self.touch = touch
+        self.touch_band_n = touch_band_n
+        self.contact_expected: Callable[[], bool] | None = None
         self.mapping = mapping
         self.zero_at_tare = zero_at_tare  # False: a task's tare leaves the model's own zero (see VirtualSensorConfig)
         self.label = label or f"{observer.kind}+{mapping.kind}"
@@ -181,21 +184,56 @@ class VirtualForceSource:
                             "%.4f); the wrench is damped and less reliable", m.sigma_min)
         self.ill_conditioned = m.ill_conditioned
         self.last_tau_ext = tau_ext
-        w = Wrench(t=state.t, force=m.wrench[:3].copy(), torque=m.wrench[3:].copy())
+        force = m.wrench[:3].copy()
+        if self.touch is not None:
+            fast = self.touch.update(state)  # every period: warm when a touch comes
+            if self.contact_expected is not None and self.contact_expected():
+                # The fast force's departure from the steady one beyond the band: the touch's ringing
+                # passes, the fast observer's noise in steady contact does not.
+                d = self.mapping.map(state.q, fast).wrench[:3] - force
+                force += np.sign(d) * np.maximum(0.0, np.abs(d) - self.touch_band_n)
+        w = Wrench(t=state.t, force=force, torque=m.wrench[3:].copy())
         self.last = w
         return w
 
     def rebias(self) -> None:
         if self.zero_at_tare:
             self.observer.rebias()
+            if self.touch is not None:
+                self.touch.rebias()
 
     def summary(self) -> dict[str, Any]:
-        return {"virtual_sensor": self.label, "ill_conditioned_cycles": self.ill_conditioned_cycles}
+        out: dict[str, Any] = {"virtual_sensor": self.label, "ill_conditioned_cycles": self.ill_conditioned_cycles}
+        if self.touch is not None:
+            out["virtual_sensor_touch_gain"] = float(getattr(self.touch, "K", np.zeros(1))[0])
+        return out
 
 
-def load_observer_model(model_dir: Path, robot: RobotModel) -> LearnedModel:
-    """The hybrid model an observer runs on: an H1-style model (physics + learned) with causal derivatives."""
+# A model's sample period may differ from the loop's by this share (a logged period's median jitters).
+PERIOD_TOLERANCE = 0.02
+
+
+def period_mismatch(model_dir: Path, meta: ModelMeta, period_s: float) -> str:
+    """'' when the model was made at the control period `period_s` (or its period is unknown); else why not.
+
+    Such a model is refused, not re-derived: its causal derivative filters and time windows are defined
+    in samples, and its learned residual holds the arm's servo behaviour at the period it was recorded
+    at, so at another period its features mean something else."""
+    made = meta.features.get("sample_period_s")
+    if made is None or abs(float(made) - period_s) <= PERIOD_TOLERANCE * period_s:
+        return ""
+    return (f"{model_dir}: the model was made from samples every {float(made) * 1e3:.1f} ms and this cell runs every "
+            f"{period_s * 1e3:.1f} ms (loop.period_s): prepare the tool at this period (`main.py prepare`, with its "
+            "own virtual_sensor.model_dir)")
+
+
+def load_observer_model(model_dir: Path, robot: RobotModel, period_s: float | None = None) -> LearnedModel:
+    """The hybrid model an observer runs on: an H1-style model (physics + learned) with causal derivatives,
+    made at the control period `period_s` when given (ConfigError otherwise)."""
     model = load_model(model_dir, robot)
+    why = period_mismatch(model_dir, model.meta, period_s) if period_s is not None else ""
+    if why:
+        raise ConfigError(why)
     if not isinstance(model, LearnedModel) or model.physics is None:
         raise DataError(f"{model_dir}: the virtual sensor needs a hybrid model (H1), got {model.meta.kind}")
     if model.meta.features.get("derivatives") != "causal":
@@ -210,7 +248,7 @@ def build_virtual_source(cfg: VirtualSensorConfig, robot: RobotModel, tool: str,
     """The configured virtual sensor for `tool` from its model and calibration artefacts (checked)."""
     model_dir = Path(model_dir) if model_dir is not None else cfg.path("model", tool)
     calibration_dir = Path(calibration_dir) if calibration_dir is not None else cfg.path("calibration", tool)
-    model = load_observer_model(model_dir, robot)
+    model = load_observer_model(model_dir, robot, dt)
     cal = load_calibration(calibration_dir, robot, tool, model_dir, model)
     own = cfg.for_tool(tool)
     return source_from(own, robot, dt, model, cal, observer or own.observer, mapping or own.mapping,
@@ -234,7 +272,9 @@ def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: L
             wmap = LearnedMap(boosters, wmap, robot.n)
     else:
         raise DataError(f"unknown wrench mapping {mapping!r} (jacobian, learned or contact)")
-    return VirtualForceSource(obs, wmap, zero_at_tare=cfg.zero_at_tare)
+    touch = (make_observer("momentum", model, dt, np.asarray(cal.measurement_var), np.asarray(cfg.process_noise_nm),
+                           cfg.touch_gain, cfg.rebias_window_s) if cfg.touch_gain > 0 else None)
+    return VirtualForceSource(obs, wmap, zero_at_tare=cfg.zero_at_tare, touch=touch, touch_band_n=cfg.touch_band_n)
 
 
 def contact_map(cfg: VirtualSensorConfig, robot: RobotModel, joint_var: np.ndarray) -> ContactMap:

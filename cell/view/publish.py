@@ -31,6 +31,19 @@ def parse_endpoint(text: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
+def resolve_endpoint(host: str, port: int) -> tuple[socket.AddressFamily, tuple[Any, ...]]:
+    """(address family, numeric socket address) of HOST:PORT, looked up once before the loop starts: a
+    name given to `sendto` is looked up again on every datagram, which can block for seconds."""
+    try:
+        found = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise ConfigError(f"--publish {host}:{port}: cannot resolve '{host}' ({exc})") from None
+    if not found:
+        raise ConfigError(f"--publish {host}:{port}: '{host}' has no address")
+    family, _, _, _, address = found[0]
+    return family, address
+
+
 def _vector(row: Mapping[str, Any], prefix: str) -> list[float | None] | None:
     keys = [prefix + a for a in AXES]
     if any(k not in row for k in keys):
@@ -45,8 +58,9 @@ class WrenchPublisher:
     def __init__(self, endpoint: tuple[str, int], joints: int = 6) -> None:
         self.endpoint = endpoint
         self.joints = joints
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setblocking(False)
+        family, self.address = resolve_endpoint(*endpoint)
+        self.sock = socket.socket(family, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)  # a full send buffer drops the datagram instead of waiting
         self.sent = 0
         self.dropped = 0
 
@@ -55,7 +69,7 @@ class WrenchPublisher:
                "wrench": _vector(row, ""), "sensor": _vector(row, "sensor_"),
                "q": [float(row[f"q{i + 1}"]) for i in range(self.joints) if f"q{i + 1}" in row]}
         try:
-            self.sock.sendto(json.dumps(msg).encode(), self.endpoint)
+            self.sock.sendto(json.dumps(msg).encode(), self.address)
             self.sent += 1
         except OSError:  # no reader, a full buffer: the loop goes on
             self.dropped += 1
@@ -63,7 +77,7 @@ class WrenchPublisher:
     def event(self, text: str, warn: bool = False) -> None:
         """The task's outcome as a last datagram: {"event": text}."""
         try:
-            self.sock.sendto(json.dumps({"event": text}).encode(), self.endpoint)
+            self.sock.sendto(json.dumps({"event": text}).encode(), self.address)
         except OSError:
             self.dropped += 1
 

@@ -1,8 +1,11 @@
-"""Plots of a recorded run (PNG): the normal force against its setpoint, like the paper's Fig. 12."""
+"""Plots of a recorded run (PNG): the normal force against its setpoint, like the paper's Fig. 12; the limits
+drawn (or named at the edge when far off the scale) and the F/T sensor's peak after the tare marked."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -33,8 +36,51 @@ def _shade_states(fig: plt.Figure, axes: list, t: np.ndarray, states: list[str])
                fontsize=7, frameon=False)
 
 
+Limits = Mapping[str, Sequence[tuple[str, float]]]
+SETUP = ("move_to_start", "tare")  # before the tare the F/T sensor still carries its unloaded offset
+OFF_SCALE = 2.6  # a limit beyond this many times the data's reach is named at the edge, not drawn
+
+
+def _limits(ax: Any, entries: Sequence[tuple[str, float]], unit: str, signed: bool = False) -> None:
+    """The limits on `ax` as dashed lines (also below zero when `signed`), those far beyond the data named
+    at the top edge instead, so the data keep the scale."""
+    lo, hi = ax.get_ylim()
+    reach = max(abs(lo), abs(hi))
+    shown, named = [], []
+    for i, (name, value) in enumerate(entries):
+        colour = ("tab:red", "darkred", "black")[min(i, 2)]
+        if value <= OFF_SCALE * reach:
+            for v in ((value, -value) if signed else (value,)):
+                ax.axhline(v, color=colour, lw=0.9, ls=(0, (6, 3)))
+            shown.append(value)
+            ax.text(0.995, value, f"{name} {value:g} {unit}", transform=ax.get_yaxis_transform(), fontsize=7,
+                    color=colour, va="bottom", ha="right")
+        else:
+            named.append(f"{name} {value:g} {unit}")
+    if shown:
+        top = max(shown) * 1.08
+        ax.set_ylim(min(lo, -top) if signed else lo, max(hi, top * 1.05))
+    if named:
+        ax.text(0.005, 0.97, "off the scale: " + ", ".join(named), transform=ax.transAxes, fontsize=7,
+                ha="left", va="top", color="darkred")
+
+
+def _mark_peak(ax: Any, t: np.ndarray, values: np.ndarray, states: list[str], label: str, colour: str,
+               row: int = 0) -> None:
+    """Mark the largest (pressing) force after the tare, its size written beside it (`row`: one line of text
+    per marked series, so two peaks close in time stay readable)."""
+    ok = ~np.isin(np.asarray(states), SETUP) & np.isfinite(values)
+    if not ok.any():
+        return
+    i = int(np.flatnonzero(ok)[np.argmax(values[ok])])
+    ax.plot(t[i], values[i], "v", color=colour, ms=7, zorder=5, mec="white", mew=0.6)
+    ax.annotate(f"{label} {values[i]:.1f} N at {t[i]:.2f} s", (t[i], values[i]), textcoords="offset points",
+                xytext=(10, -4 - 11 * row), fontsize=7, color=colour, va="top",
+                bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8})
+
+
 def plot_force_run(table: pa.Table, path: Path, title: str, setpoint_col: str = "fz_setpoint",
-                   force_label: str = "Fz used by the controller") -> Path:
+                   force_label: str = "Fz used by the controller", limits: Limits | None = None) -> Path:
     d = table.to_pydict()
     t = np.asarray(d["t"])
     states = [str(s) for s in d["state"]]
@@ -47,6 +93,12 @@ def plot_force_run(table: pa.Table, path: Path, title: str, setpoint_col: str = 
         ax.plot(t, d["fz"], color="tab:green", lw=1, label="Fz measured (F/T sensor)")
     if setpoint_col in d:
         ax.plot(t, d[setpoint_col], "r--", lw=1.2, label="setpoint")
+    measured = np.asarray(d["sensor_fz"] if "sensor_fz" in d else d["fz"], float)
+    _mark_peak(ax, t, measured, states, "F/T Fz peak", "tab:green")
+    if "sensor_fz" in d:
+        _mark_peak(ax, t, np.asarray(d["fz"], float), states, "virtual Fz peak", "tab:orange", row=1)
+    if limits and limits.get("fz"):
+        _limits(ax, limits["fz"], "N")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("normal force Fz [N]")
     fig.suptitle(title)
@@ -65,9 +117,10 @@ def plot_force_run(table: pa.Table, path: Path, title: str, setpoint_col: str = 
     return path
 
 
-def plot_peg_run(table: pa.Table, path: Path, title: str) -> Path:
+def plot_peg_run(table: pa.Table, path: Path, title: str, limits: Limits | None = None) -> Path:
     """The peg-in-hole run like the paper's Fig. 16: peg position and depth, Fz, and (Mx, My) over time,
-    virtual (used by the controller) and measured (F/T sensor) where both were logged, states shaded."""
+    virtual (used by the controller) and measured (F/T sensor) where both were logged, states shaded, the
+    limits and the peak force marked, and the contact as the task classified it."""
     d = table.to_pydict()
     t = np.asarray(d["t"])
     states = [str(s) for s in d["state"]]
@@ -94,14 +147,28 @@ def plot_peg_run(table: pa.Table, path: Path, title: str) -> Path:
                         label=f"{key.capitalize()} (F/T sensor)")
         if keys == ("fz",) and "fz_setpoint" in d:
             ax.plot(t, d["fz_setpoint"], "k:", lw=1, label="Fz setpoint")
+        if keys == ("fz",):
+            measured = np.asarray(d["sensor_fz"] if "sensor_fz" in d else d["fz"], float)
+            _mark_peak(ax, t, measured, states, "F/T Fz peak", "tab:red")
+            if "sensor_fz" in d:
+                _mark_peak(ax, t, np.asarray(d["fz"], float), states, "virtual Fz peak", "darkorange", row=1)
         ax.set_ylabel(f"[{unit}]")
-        ax.legend(loc="upper left", fontsize=7, ncol=3)
-    if "contact" in d:
+        ax.legend(loc="lower left", fontsize=7, ncol=3)
+    if limits:
+        if limits.get("fz"):
+            _limits(axes[1], limits["fz"], "N")
+        moments = [e for e in limits.get("mx", ()) if e in limits.get("my", ())]
+        if moments:
+            _limits(axes[2], moments, "N·m", signed=True)
+    column = "contact_state" if "contact_state" in d else "contact"
+    if column in d:
+        # The contact as the task classified it (the probe's verdict carried through the states it chose).
         kinds = ["free", "stuck_outside", "stuck_inside", "aligned"]
-        code = [kinds.index(c) if c in kinds else -1 for c in d["contact"]]
+        code = [kinds.index(c) if c in kinds else -1 for c in d[column]]
         axes[3].step(t, code, where="post", color="k", lw=1)
         axes[3].set_yticks(range(len(kinds)), kinds, fontsize=7)
-        axes[3].set_ylabel("contact")
+        axes[3].set_ylim(-0.5, len(kinds) - 0.5)
+        axes[3].set_ylabel("contact\n(classified)", fontsize=8)
         axes[3].grid(alpha=0.3)
     axes[3].set_xlabel("time [s]")
     fig.tight_layout(rect=(0, 0, 1, 0.95))

@@ -5,15 +5,25 @@ run), and `LiveView` streams the same entities row by row to a spawned viewer or
 Entity layout (what the test reads back): `arm/links` (line strip through the joint origins and the TCP),
 `arm/geometry/boxes|cylinders` (the URDF's collision shapes where the joints put them),
 `arm/tcp_path` (the TCP's path so far), `wrench/<virtual|sensor>/arrow` (force at the TCP, world axes,
-`ARROW_M_PER_N` metres per newton), `wrench/<virtual|sensor>/<fx..mz>` and `wrench/setpoint/fz` (time
-series), `task/state` and `events` (text logs).  The timeline is `time`, the run's own clock.
+`ARROW_M_PER_N` metres per newton), `wrench/<virtual|sensor>/<fx..mz>`, `wrench/setpoint/fz` and
+`wrench/limit/<axis>/<which>` (time series), `joints/torque/<j>` (measured joint torques),
+`collision/ratio` (the collision residual over its threshold), `contact/depth_mm` (series), `task/state`,
+`contact/state` and `events` (text logs).  The timeline is `time`, the run's own clock.  Every stream and
+`.rrd` carries the blueprint (`blueprint()`): one chart per wrench axis with both sensors, the setpoint and
+the limits; the joint torques, the collision ratio and the depth; the states and events; the arm once.
 """
 
 from __future__ import annotations
 
 import logging
+import queue
+import socket
+import subprocess
 import sys
-from collections.abc import Mapping
+import tempfile
+import threading
+import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
@@ -33,24 +43,93 @@ ARROW_M_PER_N = 0.002  # 100 N draws a 0.2 m arrow: visible beside a 0.7 m arm
 FRAME_EVERY = 4  # 3-D frames every 4th control period (32 ms at 125 Hz): the viewer need not draw faster
 APP_ID = "tmcell"
 TIMELINE = "time"
-WEB_PORT = 9090  # the served web viewer (its gRPC data stream is on 9876)
+WEB_PORT = 9090  # the served web viewer (its gRPC data stream is on GRPC_PORT)
+GRPC_PORT = 9876
+LOCAL = "127.0.0.1"
+SERVER_START_S = 20.0  # how long the served viewer may take to listen
+# The served viewers this process started (ended by `stop_servers`).
+_SERVERS: list[subprocess.Popen[bytes]] = []
 
 
-def open_viewer(name: str, serve: bool) -> rr.RecordingStream:
-    """A recording stream to a spawned viewer, or (headless) served for a browser; the URL is logged."""
-    rec = rr.RecordingStream(APP_ID, recording_id=name)
-    if serve:
-        url = rec.serve_grpc()
-        rr.serve_web_viewer(web_port=WEB_PORT, connect_to=url, open_browser=False)
-        log.info("Rerun view served: open http://localhost:%d/?url=%s in a browser", WEB_PORT, quote(url, safe=""))
-    else:
-        # The viewer ships in the rerun-sdk wheel, beside this interpreter: found even with the venv inactive.
-        beside = Path(sys.executable).with_name("rerun")
+def _viewer_binary() -> str | None:
+    # The viewer ships in the rerun-sdk wheel, beside this interpreter: found even with the venv inactive.
+    beside = Path(sys.executable).with_name("rerun")
+    return str(beside) if beside.exists() else None
+
+
+def _host(addr: str) -> str:
+    # An IPv6 address goes in brackets in a URL.
+    return f"[{addr}]" if ":" in addr else addr
+
+
+def serve_viewer(bind: str = LOCAL, web_port: int = WEB_PORT, grpc_port: int = GRPC_PORT,
+                 web: bool = True) -> tuple[str, str]:
+    """Start Rerun's viewer listening on `bind` only: with `web`, the web viewer and its gRPC proxy (ended by
+    `stop_servers`), else the native viewer window (left open for the user); (the gRPC URL for the SDK, the
+    page's URL for a browser).  The SDK's own serve_grpc / serve_web_viewer / spawn listen on every interface
+    with no way to narrow it: the viewer binary's `--bind` does, so it runs as a child process."""
+    near = LOCAL if bind in ("0.0.0.0", "::", "") else bind  # a wildcard is reached through the loopback
+    grpc = f"rerun+http://{_host(near)}:{grpc_port}/proxy"
+    page = f"http://{_host(near)}:{web_port}/?url={quote(grpc, safe='')}"
+    if not web and _listening(near, grpc_port):
+        return grpc, page  # a viewer window is already open there: log into it
+    exe = _viewer_binary() or "rerun"
+    cmd = [exe, "--bind", bind, "--port", str(grpc_port)]
+    if web:
+        cmd += ["--serve-web", "--web-viewer-port", str(web_port)]
+    err_file = tempfile.TemporaryFile()  # noqa: SIM115 (a file, not a pipe: a long-lived viewer never blocks on it)
+    try:
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err_file,
+                                start_new_session=not web)
+    except OSError as exc:
+        raise ConfigError(f"--view: cannot start the Rerun viewer ({exc})") from None
+    if web:
+        _SERVERS.append(proc)
+    deadline = time.monotonic() + SERVER_START_S
+    while True:
+        if proc.poll() is not None:
+            err_file.seek(0)
+            err = err_file.read().decode(errors="replace").strip().splitlines()
+            raise ConfigError(f"--view on {bind}: the Rerun viewer stopped ({err[-1] if err else proc.returncode})"
+                              "; is the port in use, the address not this machine's"
+                              + (", or no display (add --serve)?" if not web else "?"))
+        if _listening(near, grpc_port):
+            break
+        if time.monotonic() > deadline:
+            stop_servers()
+            raise ConfigError(f"--view on {bind}: the Rerun viewer did not listen on port {grpc_port} "
+                              f"within {SERVER_START_S:.0f} s")
+        time.sleep(0.2)
+    return grpc, page
+
+
+def _listening(host: str, port: int) -> bool:
+    try:
+        with socket.create_connection((host, port), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+def stop_servers() -> None:
+    """End the served viewers this process started."""
+    while _SERVERS:
+        proc = _SERVERS.pop()
+        proc.terminate()
         try:
-            rr.spawn(executable_path=str(beside) if beside.exists() else None, recording=rec)
-        except Exception as exc:  # no viewer binary, no display: say what to do instead
-            raise ConfigError(f"--view: cannot start the Rerun viewer ({str(exc).strip().splitlines()[0]}); on a "
-                              "machine without a display add --serve and open the printed URL") from None
+            proc.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def open_viewer(name: str, serve: bool, bind: str = LOCAL) -> rr.RecordingStream:
+    """A recording stream to a spawned viewer, or (headless) served for a browser on `bind`; the URL is logged."""
+    rec = rr.RecordingStream(APP_ID, recording_id=name)
+    grpc, page = serve_viewer(bind, web=serve)
+    rec.connect_grpc(grpc)
+    rec.send_blueprint(blueprint())
+    if serve:
+        log.info("Rerun view served on %s: open %s in a browser", bind, page)
     return rec
 
 
@@ -112,11 +191,35 @@ def _wrench(row: Mapping[str, Any], prefix: str) -> np.ndarray | None:
     return np.array([float(row[k]) for k in keys])
 
 
+def blueprint(n_joints: int = 6) -> Any:
+    """The layout every view and `.rrd` opens with: the arm on the left; on the right one chart per wrench
+    axis (virtual and F/T, setpoint, limits), the joint torques, the collision ratio with the contact depth,
+    and the task's states and events."""
+    import rerun.blueprint as rrb
+
+    def axis(a: str) -> Any:
+        return rrb.TimeSeriesView(origin="/", name=a.capitalize(), contents=[
+            f"wrench/virtual/{a}", f"wrench/sensor/{a}", f"wrench/replay/{a}", f"wrench/setpoint/{a}",
+            f"wrench/limit/{a}/**"])
+
+    charts = rrb.Grid(*[axis(a) for a in AXES], grid_columns=3)
+    below = rrb.Horizontal(
+        rrb.TimeSeriesView(origin="joints/torque", name="joint torques (N·m)"),
+        rrb.TimeSeriesView(origin="/", name="collision ratio, depth (mm)",
+                           contents=["collision/ratio", "contact/depth_mm"]),
+        rrb.TextLogView(origin="/", name="states and events", contents=["task/state", "contact/state", "events"]),
+    )
+    return rrb.Blueprint(rrb.Horizontal(
+        rrb.Spatial3DView(origin="/", name="arm", contents=["arm/**", "wrench/*/arrow"]),
+        rrb.Vertical(charts, below, row_shares=[2, 1]), column_shares=[1, 2]), collapse_panels=True)
+
+
 class RunView:
     """Logs rows of the step log (dicts as the control loop records them) into a recording stream."""
 
     def __init__(self, rec: rr.RecordingStream, robot: RobotModel, virtual_in_loop: bool) -> None:
         self.rec = rec
+        self.contact = ""
         self.frames = ArmFrames(robot)
         self.n = robot.n
         # The loop's own wrench columns are the virtual sensor's when it regulates, else the F/T sensor's.
@@ -134,6 +237,10 @@ class RunView:
         if state != self.state:
             rec.log("task/state", rr.TextLog(state, level=rr.TextLogLevel.INFO))
             self.state = state
+        contact = row.get("contact_state", row.get("contact"))
+        if isinstance(contact, str) and contact != self.contact:
+            rec.log("contact/state", rr.TextLog(contact, level=rr.TextLogLevel.INFO))
+            self.contact = contact
         reaction = row.get("reaction")
         if isinstance(reaction, str) and reaction:
             rec.log("events", rr.TextLog(f"collision reaction: {reaction}", level=rr.TextLogLevel.WARN))
@@ -145,9 +252,27 @@ class RunView:
                         rec.log(f"wrench/{name}/{axis}", rr.Scalars(v))
             if row.get("fz_setpoint") is not None:
                 rec.log("wrench/setpoint/fz", rr.Scalars(float(row["fz_setpoint"])))
+            for entity, col in self.series().items():
+                if row.get(col) is not None:
+                    rec.log(entity, rr.Scalars(float(row[col]) * (1e3 if col == "depth" else 1.0)))
         if self.rows % FRAME_EVERY == 0:
             self._scene(row)
         self.rows += 1
+
+    def series(self) -> dict[str, str]:
+        """The other time series by entity: step-log column (joint torques, collision ratio, depth)."""
+        out = {f"joints/torque/{j + 1}": f"tau{j + 1}" for j in range(self.n)}
+        out.update({"collision/ratio": "coll_ratio", "contact/depth_mm": "depth"})
+        return out
+
+    def limits(self, limits: Mapping[str, Sequence[tuple[str, float]]], t0: float, t1: float) -> None:
+        """Each wrench limit as a flat line over [t0, t1] (`wrench/limit/<axis>/<name>`), at +- its value."""
+        times = [rr.TimeColumn(TIMELINE, duration=[t0, t1])]
+        for axis, entries in limits.items():
+            for name, value in entries:
+                for sign, tag in ((1.0, ""), (-1.0, "_neg")):
+                    self.rec.send_columns(f"wrench/limit/{axis}/{name.replace(' ', '_')}{tag}", indexes=times,
+                                          columns=rr.Scalars.columns(scalars=[sign * value] * 2))
 
     def _scene(self, row: Mapping[str, Any]) -> None:
         q = np.array([float(row[f"q{i + 1}"]) for i in range(self.n)])
@@ -167,19 +292,25 @@ class RunView:
         self.rec.log("events", rr.TextLog(text, level=rr.TextLogLevel.WARN if warn else rr.TextLogLevel.INFO))
 
 
-def log_table(view: RunView, table: pa.Table, summary: Mapping[str, Any] | None = None) -> None:
-    """A whole step log into `view`: the series as columns (one call per series), the scene and the states
-    row by row, the run's outcome as the last event."""
+def log_table(view: RunView, table: pa.Table, summary: Mapping[str, Any] | None = None,
+              limits: Mapping[str, Sequence[tuple[str, float]]] | None = None) -> None:
+    """A whole step log into `view`: the series as columns (one call per series), the limits as lines, the
+    scene and the states row by row, the run's outcome as the last event."""
     rec = view.rec
     t = np.asarray(table.column("t").to_numpy(zero_copy_only=False), float)
     times = [rr.TimeColumn(TIMELINE, duration=t)]
     names = set(table.column_names)
     series = {f"wrench/{name}/{axis}": prefix + axis for name, prefix in view.sources.items() for axis in AXES}
     series["wrench/setpoint/fz"] = "fz_setpoint"
+    series.update(view.series())
     for entity, col in series.items():
         if col in names:
             values = np.asarray(table.column(col).to_numpy(zero_copy_only=False), float)
+            if col == "depth":
+                values = values * 1e3
             rec.send_columns(entity, indexes=times, columns=rr.Scalars.columns(scalars=values))
+    if limits and len(t):
+        view.limits(limits, float(t[0]), float(t[-1]))
     for row in table.to_pylist():
         view.row(row, series=False)
     if summary:
@@ -188,12 +319,13 @@ def log_table(view: RunView, table: pa.Table, summary: Mapping[str, Any] | None 
         view.event(f"outcome: {outcome}" + (f" ({reason})" if reason else ""), warn=outcome != "done")
 
 
-def write_rrd(run_dir: Path, table: pa.Table, robot: RobotModel, summary: Mapping[str, Any]) -> Path:
-    """The run's step log as `recording.rrd` in `run_dir` (open with `rerun recording.rrd`)."""
+def write_rrd(run_dir: Path, table: pa.Table, robot: RobotModel, summary: Mapping[str, Any],
+              limits: Mapping[str, Sequence[tuple[str, float]]] | None = None) -> Path:
+    """The run's step log as `recording.rrd` in `run_dir` with its blueprint (open with `rerun recording.rrd`)."""
     path = Path(run_dir) / "recording.rrd"
     rec = rr.RecordingStream(APP_ID, recording_id=Path(run_dir).name)
-    rec.save(path)
-    log_table(RunView(rec, robot, summary.get("force_source") == "virtual"), table, summary)
+    rec.save(path, default_blueprint=blueprint(robot.n))
+    log_table(RunView(rec, robot, summary.get("force_source") == "virtual"), table, summary, limits)
     rec.flush()
     rec.disconnect()
     return path
@@ -204,9 +336,6 @@ class BackgroundView:
     loop only enqueues a row (microseconds); when the viewer falls behind, rows are dropped, never waited for."""
 
     def __init__(self, view: RunView, max_rows: int = 2000) -> None:
-        import queue
-        import threading
-
         self.view = view
         self.rec = view.rec
         self.dropped = 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import secrets
 import socket
 import time
 from collections.abc import Callable
@@ -15,7 +16,8 @@ from pymodbus.pdu import ModbusPDU
 
 from drivers.errors import ConfigError, DriverError, LifecycleError, LinkLostError, ProtocolError, StaleDataError
 from drivers.interfaces import Arm, ArmState, ArmStatus, JointLimits, Lifecycle
-from drivers.tm5.contract import RobotSideStatus, TM5ModbusConfig
+from drivers.tm5.config import TM5ModbusConfig
+from drivers.tm5.contract import RobotSideStatus, token_text
 from drivers.tm5.registers import (
     COIL_STOP,
     DI_COUNT,
@@ -52,11 +54,14 @@ class TM5ModbusArm(Arm):
     Per cycle: `read_state` = 3 reads (input registers 7001-7036, discrete inputs 7200-7208, the robot->host
     user block); `send_target` = 1 write (the host->robot user block).  Units are converted here only.
     The link is a sync pymodbus client with `retries=0`, so a dead link costs at most `timeout_s`.
+    Every write carries this driver's random `token`: the robot side acts on one token at a time (the
+    control lease, renewed by every write), so a second host cannot arm an arm another one drives.
     """
 
     def __init__(self, config: TM5ModbusConfig, limits: JointLimits, dt: float, speed_scale: float = 1.0) -> None:
         super().__init__(limits, dt, speed_scale)
         config.validate()
+        config.check_period(dt)
         if limits.n != N_JOINTS:
             raise ConfigError(f"the TM5-700 has {N_JOINTS} joints, the joint limits describe {limits.n}")
         self.config = config
@@ -67,6 +72,7 @@ class TM5ModbusArm(Arm):
         self._stop_failed = False  # the last stop attempt raised: the next one may reconnect
         self._next_attempt = 0.0
         self._host_seq = 0
+        self.token = 1 + secrets.randbelow(0xFFFFFFFF)  # nonzero: a zero token claims nothing
         self._counter_raw: int | None = None
         self._counter_seen_at = 0.0
         self._new_stale_window = False
@@ -151,13 +157,20 @@ class TM5ModbusArm(Arm):
         deadline = time.monotonic() + self.config.arm_timeout_s
         if not self.link_up:
             self._reconnect_blocking(self.config.arm_timeout_s)
+        echo = self._await_lease(deadline).host_seq_echo
+        if 0 < counter_delta(echo, self._host_seq) < 0x80000000:
+            # Another host wrote since we last did: number on from its sequence, or our IDLE might repeat
+            # a number the robot side already acted upon (and never be acted upon itself).
+            self._host_seq = echo
         q = self._read_joints()
         seq = self._write_host_block(Command.IDLE, q)
         first_counter: int | None = None
         while True:
             rs = self._read_robot_block()
             first_counter = rs.counter if first_counter is None else first_counter
-            if rs.host_seq_echo == seq:
+            if self._held_by_other(rs):
+                raise self._held_error(rs, "arm is held by another controller")
+            if rs.host_seq_echo == seq and rs.lease_holder == self.token:
                 # Armed on a working link: a stop that failed before this is moot, so a fault's first stop
                 # again never waits on the link (it would double the time a lost link takes to report).
                 self._stop_failed = False
@@ -171,10 +184,30 @@ class TM5ModbusArm(Arm):
                 "the robot-side program is not running (see docs/robot-side-program.md)"
             )
         raise ProtocolError(
-            f"TM5 {self.endpoint}: robot-side program did not acknowledge host sequence {seq} within "
-            f"{self.config.arm_timeout_s:g} s (echo at {self._layout.host_seq_echo} reads {rs.host_seq_echo}); "
-            "does its register layout match devices.arm.user_area?"
+            f"TM5 {self.endpoint}: robot-side program did not acknowledge host sequence {seq} and grant this "
+            f"host control within {self.config.arm_timeout_s:g} s (echo at {self._layout.host_seq_echo} reads "
+            f"{rs.host_seq_echo}, lease holder {token_text(rs.lease_holder)}); does its register layout match "
+            "devices.arm.user_area?"
         )
+
+    def _await_lease(self, deadline: float) -> RobotSideStatus:
+        """Write nothing while another host holds control: wait, up to `deadline`, for its lease to lapse
+        (a host that stopped or vanished), then raise naming the holder.  A write would be refused anyway,
+        and it would cost the holder a cycle of its targets."""
+        while True:
+            rs = self._read_robot_block()
+            if not self._held_by_other(rs):
+                return rs
+            if time.monotonic() >= deadline:
+                raise self._held_error(rs, "arm is held by another controller")
+            time.sleep(0.005)
+
+    def _held_by_other(self, rs: RobotSideStatus) -> bool:
+        return rs.lease_holder not in (0, self.token)
+
+    def _held_error(self, rs: RobotSideStatus, what: str) -> LifecycleError:
+        return LifecycleError(f"TM5 {self.endpoint}: {what} (token {token_text(rs.lease_holder)}, renewed "
+                              f"{rs.lease_age_s * 1000:.0f} ms ago; this host is {token_text(self.token)})")
 
     def _stop(self) -> None:
         # A first stop never waits on the link: a dead one fails at once (the robot's watchdog stops the arm
@@ -204,6 +237,9 @@ class TM5ModbusArm(Arm):
                                layout.torque)
         dq_deg = self._finite(regs_to_floats(hr[layout.slice_in("speed", rb_start)]), "joint speed", layout.speed)
         robot = self._decode_robot_block(hr, rb_start)
+        if self.lifecycle is Lifecycle.ARMED and self._held_by_other(robot):
+            # Our lease lapsed (no write for the robot side's lease timeout) and another host took it.
+            raise self._held_error(robot, "control was taken by another controller")
         self._flange_pose = regs_to_pose(ir[0:12])
         self._tool_pose = regs_to_pose(ir[IR_TOOL_POSE - IR_FIRST:IR_TOOL_POSE - IR_FIRST + 12])
         self._check_counter(robot.counter, t)
@@ -247,6 +283,8 @@ class TM5ModbusArm(Arm):
             counter=regs_to_int32(hr[lay.slice_in("robot_counter", start)]),
             flags=RobotFlags(hr[lay.slice_in("robot_status", start)][0] & _ROBOT_FLAGS_MASK),
             host_seq_echo=regs_to_int32(hr[lay.slice_in("host_seq_echo", start)]),
+            lease_holder=regs_to_int32(hr[lay.slice_in("lease_holder", start)]) & 0xFFFFFFFF,
+            lease_age_s=hr[lay.slice_in("lease_age_ms", start)][0] / 1000.0,
         )
         self._robot_side = rs
         return rs
@@ -294,6 +332,7 @@ class TM5ModbusArm(Arm):
             raise ProtocolError(f"TM5 {self.endpoint}: cannot encode joint targets: {exc}") from None
         regs[lay.slice_in("host_seq", start)] = int32_to_regs(seq)
         regs[lay.slice_in("command", start)] = [int(command)]
+        regs[lay.slice_in("host_token", start)] = int32_to_regs(wrap_int32(self.token))
         # The number is used up once sent, reply or not: a write whose reply was lost may have reached the
         # robot-side program, which ignores a number it already acted upon (a re-arm reusing it would
         # never clear the latched stop).

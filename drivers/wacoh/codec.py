@@ -129,10 +129,22 @@ def encode_record(record_no: int, raw_counts: Sequence[int] | np.ndarray) -> byt
 # ASCII only, on bytes: a str pattern's \s and \d also match Unicode whitespace and digits, and
 # 0x1C-0x1F (one flipped bit turns CR into 0x1D) are whitespace to `re` but not to float().
 _DECIMAL = re.compile(rb" *[0-9]+(?:\.[0-9]+)? *")
-_AXIS_NAMES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+AXIS_NAMES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
 _AXIS_UNITS = ("LSB/N",) * 3 + ("LSB/(N·m)",) * 3
-# Default relative band around the nominal sensitivities within which a `p` reply is believed.
-SENSITIVITY_TOLERANCE = 0.10
+# The WEF-6A200-4-RCD's nominal sensitivities: +-6553 LSB at the rated 200 N and 4 N·m.
+MODEL_SENSITIVITIES = Sensitivities()
+# How far one unit's factory values may lie from the model's (a configured reference beyond is a typo
+# or another model).
+MODEL_SPREAD = 0.10
+# Default relative band around the nominal sensitivities within which a `p` reply is believed.  The
+# real unit's worst axis sits 0.97 % from nominal (Mx 1653.801 against 1638); a corrupted digit that
+# stays within the band cannot be told from a real value, so the band is as tight as real units allow.
+SENSITIVITY_TOLERANCE = 0.015
+# With the unit's calibration sheet configured, a `p` reply must match it this closely.  The band cannot
+# catch a digit changed within it, the sheet can: any reply within this of the sheet gives a scale error
+# of at most 0.1 %, about 3 LSB at full scale.  The reply's own resolution (0.001 of ~32.8, 0.003 %) and a
+# sheet printed with fewer decimals stay well inside it.
+SHEET_TOLERANCE = 0.001
 
 
 def parse_sensitivities(
@@ -161,13 +173,16 @@ def parse_sensitivities(
     return sens
 
 
-def check_sensitivities(sens: Sensitivities, nominal: Sensitivities, tolerance: float) -> Sensitivities:
-    """ProtocolError naming the first axis whose value is not within `tolerance` (relative) of `nominal`."""
-    for name, unit, value, ref in zip(_AXIS_NAMES, _AXIS_UNITS, sens.values, nominal.values, strict=True):
+def check_sensitivities(
+    sens: Sensitivities, nominal: Sensitivities, tolerance: float, against: str = "the nominal"
+) -> Sensitivities:
+    """ProtocolError naming the first axis whose value is not within `tolerance` (relative) of `nominal`
+    (`against` names those values in the message)."""
+    for name, unit, value, ref in zip(AXIS_NAMES, _AXIS_UNITS, sens.values, nominal.values, strict=True):
         if not abs(value - ref) <= tolerance * ref:
             raise ProtocolError(
-                f"WACOH sensitivities reply: {name} = {value:g} {unit} is not within {tolerance:.0%} of "
-                f"the nominal {ref:g}"
+                f"WACOH sensitivities reply: {name} = {value:g} {unit} is not within {tolerance * 100:g}% of "
+                f"{against} {ref:g}"
             )
     return sens
 

@@ -1,75 +1,57 @@
-"""Settings of a WACOH sensor (`devices.sensor.settings`) and their validation."""
+"""Settings of a WACOH sensor (`devices.sensor.settings`): each one bounded, loaded with drivers/configio."""
 
 from __future__ import annotations
 
-import math
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+import dataclasses
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from drivers.configio import describe, integer_in, join, load_dataclass, number_in, number_near, one_of
 from drivers.errors import ConfigError
-from drivers.wacoh.codec import FILTER_SETTINGS, N_CHANNELS, SENSITIVITY_TOLERANCE, Sensitivities
+from drivers.wacoh.codec import (
+    AXIS_NAMES,
+    FILTER_SETTINGS,
+    MODEL_SENSITIVITIES,
+    MODEL_SPREAD,
+    N_CHANNELS,
+    SENSITIVITY_TOLERANCE,
+    Sensitivities,
+)
 
 TareMode = Literal["sensor", "software"]
 ReadMode = Literal["poll", "stream"]
 
-
-def _key(where: str, name: str) -> str:
-    if not where:
-        return name
-    return f"{where} {name}" if where.endswith(":") else f"{where}.{name}"
-
-
-def _show(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _positive_int(value: Any, key: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-        raise ConfigError(f"{key} must be a positive integer, got {_show(value)}")
-    return value
-
-
-def _positive_float(value: Any, key: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not (math.isfinite(value) and value > 0):
-        raise ConfigError(f"{key} must be a positive number, got {_show(value)}")
-    return float(value)
-
-
-def _choice(value: Any, key: str, options: tuple[Any, ...]) -> Any:
-    # bool is an int: keep `True` from passing as filter 1.
-    if isinstance(value, bool) or value not in options:
-        raise ConfigError(f"{key} must be one of {list(options)}, got {_show(value)}")
-    return value
+# The family's variants run at 9600, 115200 and 921600 bit/s; USB-serial adapters stop near 3 Mbit/s.
+BAUDRATE_RANGE = (9600, 3_000_000)
+# A record is 0.29 ms on the wire at 921600 bit/s, plus the adapter's latency: 1 ms is the least a reply
+# can be given.  Beyond 1 s a silent sensor would hold the control loop for over a hundred periods.
+TIMEOUT_RANGE_S = (0.001, 1.0)
+MAX_TARE_SAMPLES = 10_000  # 10 s of records at 1 kHz; the tare blocks the cell while it averages
+MAX_FAILURES = 100  # reads in a row without a record: beyond this a dead sensor goes unnoticed too long
+# The `p` band: at least the reply's resolution (3 decimals of ~32.8), at most what `doctor` accepts.
+TOLERANCE_RANGE = (0.001, 0.05)
+_SENSITIVITY_FIELDS = ("sensitivities", "nominal_sensitivities")
+_MODEL = "the model's nominal"
+_NOMINAL = "nominal_sensitivities"
 
 
 def _port(value: Any, key: str) -> str:
     if not isinstance(value, str) or not value.strip():
-        raise ConfigError(f"{key} must be a non-empty string (e.g. /dev/ttyUSB0), got {_show(value)}")
+        raise ConfigError(f"{key} must be a non-empty string (e.g. /dev/ttyUSB0), got {describe(value)}")
     return value
 
 
-def _sensitivities(value: Any, key: str) -> Sensitivities:
-    if isinstance(value, Sensitivities):
-        return value
-    message = f"{key} must be a list of 6 positive numbers [Fx, Fy, Fz in LSB/N, Mx, My, Mz in LSB/(N·m)]"
-    if not isinstance(value, list | tuple) or len(value) != N_CHANNELS:
-        raise ConfigError(f"{message}, got {_show(value)}")
-    for v in value:
-        if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and v > 0):
-            raise ConfigError(f"{message}, got {_show(value)}")
-    return Sensitivities.from_values(value)
-
-
-def _fraction(value: Any, key: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < 1:
-        raise ConfigError(f"{key} must be a number between 0 and 1 (exclusive), got {_show(value)}")
-    return float(value)
-
-
-def _filter(value: Any, key: str) -> int | None:
-    return None if value is None else int(_choice(value, key, FILTER_SETTINGS))
+def _near(values: Any, key: str, reference: Sequence[float], rel_tol: float, against: str) -> tuple[float, ...]:
+    """Six numbers, each within `rel_tol` of its `reference` value (`against` names it); ConfigError naming
+    the axis otherwise."""
+    if isinstance(values, Sensitivities):
+        values = values.values
+    if not isinstance(values, list | tuple) or len(values) != N_CHANNELS:
+        raise ConfigError(f"{key} must be a list of 6 numbers [Fx, Fy, Fz in LSB/N, Mx, My, Mz in LSB/(N·m)], "
+                          f"got {describe(values)}")
+    return tuple(number_near(v, f"{key}[{i}] ({axis}, against {against})", ref, rel_tol)
+                 for i, (v, ref, axis) in enumerate(zip(values, reference, AXIS_NAMES, strict=True)))
 
 
 @dataclass
@@ -79,53 +61,59 @@ class WacohConfig:
     port: str  # pyserial port or URL, e.g. /dev/ttyUSB0
     baudrate: int = 921600
     timeout_s: float = 0.05  # per request (plus the reply's time on the wire)
-    # Used when the sensor does not answer `p` (some models never do): Fx, Fy, Fz then Mx, My, Mz.
-    sensitivities: Sensitivities = field(default_factory=Sensitivities)
+    # The unit's calibration sheet: Fx, Fy, Fz then Mx, My, Mz, within `sensitivity_tolerance` of
+    # `nominal_sensitivities`.  When set, a `p` reply is believed only within SHEET_TOLERANCE of it (the
+    # only check that catches a corrupted digit inside the band) and it is used when `p` is not believed;
+    # None: no sheet, `p` is checked against the band only and `nominal_sensitivities` is the fallback.
+    sensitivities: Sensitivities | None = None
     tare: TareMode = "software"  # "sensor": `O` x3 in the sensor; "software": mean of tare_samples
     tare_samples: int = 50
     filter: int | None = None  # sensor moving average over 1/2/4/8 samples; None leaves it as it is
     mode: ReadMode = "poll"  # "poll": one `R` per read; "stream": `S`, keep the latest record
     max_consecutive_failures: int = 10  # reads in a row with no valid record before LinkLostError
 
-    # A `p` reply is believed only if every value lies within `sensitivity_tolerance` (relative) of these
-    # nominal values of the sensor class (200 N / 4 N·m: ~32.8 LSB/N, ~1638 LSB/(N·m)); else it is
-    # asked again, and the configured `sensitivities` are used if no plausible reply comes.
+    # Without a sheet, a `p` reply is believed only if every value lies within `sensitivity_tolerance`
+    # (relative) of these (by default the model's 32.8 LSB/N and 1638 LSB/(N·m); a unit further off: its
+    # calibration sheet, within 10 % of the model's) and two replies agree; else these are used.
     nominal_sensitivities: Sensitivities = field(default_factory=Sensitivities)
     sensitivity_tolerance: float = SENSITIVITY_TOLERANCE
 
     def validate(self, where: str = "WacohConfig") -> None:
-        """ConfigError naming the first bad field."""
-        for name, check in _CHECKS.items():
-            check(getattr(self, name), _key(where, name))
+        """ConfigError naming the first field out of its type or range."""
+        _port(self.port, join(where, "port"))
+        integer_in(self.baudrate, join(where, "baudrate"), *BAUDRATE_RANGE)
+        number_in(self.timeout_s, join(where, "timeout_s"), *TIMEOUT_RANGE_S, unit=" s")
+        one_of(self.tare, join(where, "tare"), ("sensor", "software"))
+        integer_in(self.tare_samples, join(where, "tare_samples"), 1, MAX_TARE_SAMPLES)
+        if self.filter is not None:
+            one_of(self.filter, join(where, "filter"), FILTER_SETTINGS)
+        one_of(self.mode, join(where, "mode"), ("poll", "stream"))
+        integer_in(self.max_consecutive_failures, join(where, "max_consecutive_failures"), 1, MAX_FAILURES)
+        number_in(self.sensitivity_tolerance, join(where, "sensitivity_tolerance"), *TOLERANCE_RANGE)
+        nominal = _near(self.nominal_sensitivities, join(where, "nominal_sensitivities"),
+                        MODEL_SENSITIVITIES.values, MODEL_SPREAD, _MODEL)
+        if self.sensitivities is not None:
+            _near(self.sensitivities, join(where, "sensitivities"), nominal, self.sensitivity_tolerance, _NOMINAL)
+
+    @property
+    def fallback_sensitivities(self) -> Sensitivities:
+        """What is used when `p` is missing or not believed: the sheet, else the nominal values."""
+        return self.sensitivities if self.sensitivities is not None else self.nominal_sensitivities
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None, where: str) -> WacohConfig:
         """Build from a config mapping; ConfigError('<where>.<field> must be ..., got ...') on any bad value."""
-        if d is None:
-            d = {}
-        if not isinstance(d, Mapping):
-            raise ConfigError(f"{where} must be a mapping, got {_show(d)}")
-        known = [f.name for f in fields(cls)]
-        unknown = sorted(str(k) for k in d if k not in known)
-        if unknown:
-            head = where if where.endswith(":") else f"{where}:"
-            raise ConfigError(f"{head} unknown key '{unknown[0]}' (known: {', '.join(sorted(known))})")
-        if "port" not in d:
-            raise ConfigError(f"{_key(where, 'port')} is required")
-        kwargs = {name: _CHECKS[name](d[name], _key(where, name)) for name in known if name in d}
-        return cls(**kwargs)
-
-
-_CHECKS: dict[str, Any] = {
-    "port": _port,
-    "baudrate": _positive_int,
-    "timeout_s": _positive_float,
-    "sensitivities": _sensitivities,
-    "tare": lambda v, k: _choice(v, k, ("sensor", "software")),
-    "tare_samples": _positive_int,
-    "filter": _filter,
-    "mode": lambda v, k: _choice(v, k, ("poll", "stream")),
-    "max_consecutive_failures": _positive_int,
-    "nominal_sensitivities": _sensitivities,
-    "sensitivity_tolerance": _fraction,
-}
+        if d is not None and not isinstance(d, Mapping):
+            raise ConfigError(f"{where} must be a mapping, got {describe(d)}")
+        d = dict(d or {})
+        # The shared loader reads every other field (types, unknown and missing keys, `validate`); the
+        # sensitivities are written as plain lists of six, which it has no type for.
+        lists = {name: d.pop(name) for name in _SENSITIVITY_FIELDS if name in d}
+        cfg = load_dataclass(cls, d, where)
+        nominal = _near(lists.get("nominal_sensitivities", cfg.nominal_sensitivities),
+                        join(where, "nominal_sensitivities"), MODEL_SENSITIVITIES.values, MODEL_SPREAD, _MODEL)
+        sheet = lists.get("sensitivities", cfg.sensitivities)
+        if sheet is not None:
+            sheet = Sensitivities.from_values(_near(sheet, join(where, "sensitivities"), nominal,
+                                                    cfg.sensitivity_tolerance, _NOMINAL))
+        return dataclasses.replace(cfg, nominal_sensitivities=Sensitivities.from_values(nominal), sensitivities=sheet)

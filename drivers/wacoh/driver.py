@@ -6,13 +6,12 @@ import logging
 import select
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
-from drivers.errors import DriverError, LinkLostError, ProtocolError
+from drivers.errors import DriverError, LinkLostError
 from drivers.interfaces import ForceSensor, Wrench
 from drivers.serial_link import LINK_ERRORS, READ_SLICE_S, SerialLink
 from drivers.wacoh.codec import (
@@ -29,10 +28,12 @@ from drivers.wacoh.codec import (
     RecordReader,
     Sensitivities,
     decode_counts,
-    parse_sensitivities,
     sensor_to_cell,
 )
 from drivers.wacoh.config import WacohConfig
+from drivers.wacoh.record_sync import LATE_REPLY_S as _LATE_REPLY_S
+from drivers.wacoh.record_sync import RecordSync
+from drivers.wacoh.sensitivity import agreed_sensitivities
 
 log = logging.getLogger(__name__)
 
@@ -40,14 +41,6 @@ log = logging.getLogger(__name__)
 _DRAIN_S = 0.02
 # `O` must be sent three times, about 1 ms apart.
 _ZERO_REPEATS = 3
-# The sensitivities set every reading's scale, and the reply has no checksum: a flipped bit in a digit
-# (32.800 -> 32.801) is still a plausible reply.  So `p` is asked until two replies are byte-identical,
-# well-formed and plausible (a garbled reply is asked again), at most this many times.
-_P_ATTEMPTS = 6
-# Poll mode matches each reply's record number (a digit 0-9 the sensor increments per record) to its
-# request.  A request whose reply did not come in time stays "unsettled" (its reply may still arrive,
-# and must not pass for a later request's) until a later record settles it or this long has passed.
-_LATE_REPLY_S = 0.1
 # At connect, one `R` with this much patience learns the sensor's record number.
 _SYNC_WAIT_S = 0.1
 _ZERO_GAP_S = 0.001
@@ -68,7 +61,9 @@ class WacohSensor(ForceSensor):
     (time.monotonic()).  Failure policy: a read that times out or receives only corrupted data returns
     an all-NaN Wrench and is counted; the `max_consecutive_failures`-th such read in a row raises
     LinkLostError instead.  An OS-level port error (device unplugged, emulator gone) raises LinkLostError
-    at once.  A channel at the ends of the 14-bit range (saturated) reads NaN.
+    at once.  A channel at the ends of the 14-bit range (saturated) reads NaN.  In poll mode a reading is
+    always the answer to its own request: when record numbers turn ambiguous the driver resynchronises
+    (see record_sync.py), and its reads meanwhile are failures too.
     Software tare and the nominal zero reset on every connect; `tare()` after connecting.
     """
 
@@ -77,7 +72,7 @@ class WacohSensor(ForceSensor):
         config.validate()
         self.config = config
         self._link = SerialLink(config.port, config.baudrate, config.timeout_s, "WACOH sensor")
-        self._sens = config.sensitivities
+        self._sens = config.fallback_sensitivities
         self._scale = self._sens.as_array()
         self.sensitivities_source: Literal["sensor", "config"] = "config"
         self._zero = np.full(N_CHANNELS, float(RAW_ZERO))
@@ -88,12 +83,10 @@ class WacohSensor(ForceSensor):
         self.records_saturated = 0
         self.timeouts = 0
         self.records_stale = 0  # poll mode: records that answered an earlier request (discarded)
+        self.resyncs = 0  # poll mode: resynchronisations started (see record_sync.py)
         self.consecutive_failures = 0
         self._warned_saturation = False
-        # Poll mode: the record number the sensor gives its next record (None: not known), and the
-        # (record number, send time) of earlier requests whose replies may still arrive.
-        self._next_no: int | None = None
-        self._unsettled: deque[tuple[int | None, float]] = deque()
+        self._sync = RecordSync()  # poll mode: whose reply each record is (see record_sync)
         # Stream mode.
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
@@ -121,6 +114,7 @@ class WacohSensor(ForceSensor):
                 "records_saturated": self.records_saturated,
                 "timeouts": self.timeouts,
                 "records_stale": self.records_stale,
+                "resyncs": self.resyncs,
                 "consecutive_failures": self.consecutive_failures,
             }
 
@@ -128,7 +122,7 @@ class WacohSensor(ForceSensor):
     def _connect(self) -> None:
         cfg = self.config
         self._link.open()
-        self._next_no, self._unsettled = None, deque()
+        self._sync.reset()
         try:
             self._stop_stream_and_drain()  # a previous session may have left streaming on
             self._sens, self.sensitivities_source = self._request_sensitivities()
@@ -140,14 +134,15 @@ class WacohSensor(ForceSensor):
             if cfg.mode == "stream":
                 self._start_stream()
             elif self._poll_once(wait_s=max(cfg.timeout_s, _SYNC_WAIT_S), count=False) is None:
-                log.warning("WACOH sensor on %s: no record at connect; reads wait until no earlier "
-                            "request can still be answered", cfg.port)
+                log.warning("WACOH sensor on %s: no record at connect; reads resynchronise first", cfg.port)
         except BaseException:
             self._stop_stream_thread()
             self._link.close()
             raise
-        log.info("WACOH sensor on %s: connected (%s mode, sensitivities from %s: %s)", cfg.port, cfg.mode,
-                 self.sensitivities_source, self._sens.values)
+        checked = ("against the calibration sheet" if cfg.sensitivities is not None else
+                   "against the nominal band only: no calibration sheet in `sensitivities`")
+        log.info("WACOH sensor on %s: connected (%s mode, sensitivities from %s: %s; `p` checked %s)", cfg.port,
+                 cfg.mode, self.sensitivities_source, self._sens.values, checked)
 
     def _disconnect(self) -> None:
         try:
@@ -193,34 +188,23 @@ class WacohSensor(ForceSensor):
                 return bytes(buf)  # not a reply we know; let the parser reject it
 
     def _request_sensitivities(self) -> tuple[Sensitivities, Literal["sensor", "config"]]:
-        """Ask `p` until two replies agree byte for byte and are well-formed and plausible (within the
-        configured band of the nominal values); a garbled or implausible reply is asked again, no
-        reply at all to the first request (some models never answer) falls back at once."""
+        """The sensitivities from `p` if two believable replies agree (see sensitivity.py), else the sheet's,
+        else the nominal values."""
         cfg = self.config
-        port, fallback = cfg.port, cfg.sensitivities
-        problem = ""
-        believed: set[bytes] = set()
-        for attempt in range(_P_ATTEMPTS):
-            self._discard_input()
-            self._link.write(CMD_SENSITIVITIES, "sensitivities request")
-            line = self._read_line(self._link.reply_deadline(64))
-            if line is None:
-                problem = f"no reply to 'p' within {cfg.timeout_s:.3g} s"
-                if attempt == 0:
-                    break
-                continue
-            try:
-                sens = parse_sensitivities(line, cfg.nominal_sensitivities, cfg.sensitivity_tolerance)
-            except ProtocolError as exc:
-                problem = str(exc)
-                log.debug("WACOH sensor on %s: %s; asking again", port, exc)
-                continue
-            if line in believed:
-                return sens, "sensor"
-            believed.add(line)
-            problem = "no two replies to 'p' agreed"
-        log.warning("WACOH sensor on %s: %s; using configured sensitivities %s", port, problem, fallback.values)
-        return fallback, "config"
+        sens, problem = agreed_sensitivities(self._ask_sensitivities, cfg)
+        if sens is not None:
+            return sens, "sensor"
+        used = ("the calibration sheet's" if cfg.sensitivities is not None
+                else "the nominal (no calibration sheet configured)")
+        log.warning("WACOH sensor on %s: %s; using %s sensitivities %s", cfg.port, problem, used,
+                    cfg.fallback_sensitivities.values)
+        return cfg.fallback_sensitivities, "config"
+
+    def _ask_sensitivities(self) -> bytes | None:
+        """Send one `p`: its reply line, or None if none came in time."""
+        self._discard_input()
+        self._link.write(CMD_SENSITIVITIES, "sensitivities request")
+        return self._read_line(self._link.reply_deadline(64))
 
     # ------------------------------------------------------------------ reading
     def _read(self) -> Wrench:
@@ -242,7 +226,8 @@ class WacohSensor(ForceSensor):
         if n >= self.config.max_consecutive_failures:
             raise LinkLostError(
                 f"WACOH sensor on {self.config.port}: no valid record in {n} consecutive reads "
-                f"({self.timeouts} timeouts, {self.records_rejected} rejected records so far)"
+                f"({self.timeouts} timeouts, {self.records_rejected} rejected records, {self.resyncs} "
+                f"resynchronisations so far)"
             )
 
     def _poll_once(self, wait_s: float | None = None, count: bool = True) -> _Sample | None:
@@ -253,20 +238,17 @@ class WacohSensor(ForceSensor):
         earlier number and is discarded, never returned as new.  `wait_s` overrides the timeout
         (connect's first read, which learns the numbering); `count=False` leaves the counters alone.
         """
+        sync = self._sync
+        sync.expire()
+        if not sync.resyncing and sync.ambiguous():
+            self._start_resync()
+        if sync.resyncing and not self._resync_done(count):
+            return None
         # Clear leftovers first: a late or partial earlier reply must not pass for this one (pitfall 4).
         self._discard_input()
-        self._expire_unsettled()
-        if self._next_no is None and self._unsettled:
-            # The numbering is not known yet and an earlier request may still be answered: no reply
-            # could be told from that one.  Send nothing until it cannot come any more.
-            self._wait_until(self._link.reply_deadline(RECORD_LEN))
-            self.timeouts += count
-            return None
-        expected = self._next_no
         self._link.write(CMD_RECORD, "record request")
         sent = time.monotonic()
-        if expected is not None:
-            self._next_no = (expected + 1) % 10
+        expected = sync.sent(sent)
         deadline = sent + (self.config.timeout_s if wait_s is None else wait_s)
         deadline += self._link.wire_time(RECORD_LEN)
         framer = self._framer
@@ -281,10 +263,7 @@ class WacohSensor(ForceSensor):
                     continue
                 for frame in framer.feed(chunk):
                     record_no, counts = decode_counts(frame)
-                    if self._is_this_reply(record_no, expected):
-                        self._unsettled.clear()  # replies come in order: every earlier one is done
-                        if expected is None:
-                            self._next_no = (record_no + 1) % 10
+                    if sync.answers(record_no, expected):
                         self.records_ok += count
                         return _Sample(seq=self.records_ok, t=time.monotonic(), counts=counts)
                     self.records_stale += count
@@ -294,34 +273,49 @@ class WacohSensor(ForceSensor):
                     break
             if framer.long_rejected == long0:
                 self.timeouts += count
-            self._unsettled.append((expected, sent))
+                sync.unanswered(expected, sent)
+            else:
+                sync.corrupt_reply(expected, sent)
             return None
         finally:
             self.records_rejected += (framer.rejected - rejected0) * count
 
-    def _is_this_reply(self, record_no: int, expected: int | None) -> bool:
-        """Whether a record numbered `record_no` answers the request just sent (expecting `expected`).
+    def _start_resync(self) -> None:
+        self.resyncs += 1
+        self._sync.start_resync()
+        log.warning("WACOH sensor on %s: %d unanswered request(s) may still be answered and no reply could be told "
+                    "from theirs; resynchronising (no requests for %.0f ms)", self.config.port,
+                    len(self._sync.unsettled), _LATE_REPLY_S * 1e3)
 
-        A record that answers an unsettled earlier request settles it and every request before it.
-        """
-        if expected is None:
-            return True  # nothing unsettled (see _poll_once): whatever comes answers this request
-        earlier = [no for no, _ in self._unsettled]
-        if record_no in earlier:
-            # An earlier request's reply (or, if `expected` too, ambiguous after a wrap: refused).
-            for _ in range(earlier.index(record_no) + 1):  # the oldest it may answer: settle the fewest
-                self._unsettled.popleft()
+    def _resync_done(self, count: bool) -> bool:
+        """One read's share of a resynchronisation: discard what arrives, for at most one request time (a
+        read costs no more than one that times out).  True once the line has been quiet long enough: this
+        read then sends the new request, whose reply teaches the numbering afresh."""
+        until = self._sync.resync_until
+        assert until is not None
+        request_s = self.config.timeout_s + self._link.wire_time(RECORD_LEN)
+        now = time.monotonic()
+        waiting = now < until
+        # Past the window only one look, so that this read still has its whole timeout for the request.
+        if self._drain(min(until, now + request_s) if waiting else now, count):
+            # Still arriving: later than any reply should be, so wait for the line to fall quiet.
+            self._sync.extend_resync(time.monotonic() + request_s)
             return False
-        return record_no == expected
+        if waiting:
+            return False
+        self._sync.end_resync()
+        return True
 
-    def _expire_unsettled(self) -> None:
-        limit = time.monotonic() - _LATE_REPLY_S
-        while self._unsettled and self._unsettled[0][1] < limit:
-            self._unsettled.popleft()
-
-    def _wait_until(self, deadline: float) -> None:
-        while time.monotonic() < deadline:
-            self._link.read_chunk(MAX_LINE, deadline)  # whatever arrives now is an earlier request's: discarded
+    def _drain(self, deadline: float, count: bool) -> bool:
+        """Read and discard whatever arrives until `deadline` (looking at least once); whether anything did."""
+        arrived = False
+        while True:
+            chunk = self._link.read_chunk(MAX_LINE, deadline)
+            if chunk:
+                arrived = True
+                self.records_stale += len(self._framer.feed(chunk)) * count
+            elif time.monotonic() >= deadline:
+                return arrived
 
     def _to_wrench(self, sample: _Sample) -> Wrench:
         values = (sample.counts - self._zero) / self._scale

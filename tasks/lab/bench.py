@@ -17,10 +17,14 @@ from cell.model.dynamics.fastpredict import FastPredictor
 from cell.model.dynamics.learned import Forest, LearnedModel, physics_part
 from cell.model.dynamics.nets import NetLearner, NetParams
 from cell.model.robot import RobotModel
+from cell.model.specs import CELL_ROBOT, robot_by_name
 from cell.sensing.derivatives import DerivativeMode
+from cell.sensing.observer import make_observer
+from cell.sensing.virtual_sensor import VirtualForceSource, contact_map
+from cell.sensing.wrench_map import JacobianMap, LearnedMap, fit_learned_axes
 from drivers.errors import ConfigError
-from tasks.lab.robot import CELL_ROBOT, lab_robot, lab_settings
-from tasks.lab.train import TrainOptions, fit_model, load_samples
+from drivers.interfaces import ArmState
+from tasks.lab.train import TrainOptions, fit_model, lab_settings, load_samples
 
 
 def bench_model(
@@ -51,7 +55,7 @@ def bench_model(
          [--robot tm5-700] [--json]
     """
     settings = lab_settings(robot)
-    robot_model = lab_robot(cfg, robot)
+    robot_model = robot_by_name(cfg, robot)
     dataset = Path(dataset)
     opts = TrainOptions(nthread=nthread, seed=seed, derivatives="causal", **settings)
     if model_path is not None:
@@ -145,10 +149,6 @@ def bench_virtual_sensor(cfg: CellConfig, robot: RobotModel, model: LearnedModel
 
     The learned map here is fitted on the stream itself (the Jacobian's wrench as the target) with the
     calibration's tree settings: the timing depends on the trees' number and depth, not their values."""
-    from cell.sensing.observer import make_observer
-    from cell.sensing.virtual_sensor import VirtualForceSource, contact_map
-    from cell.sensing.wrench_map import JacobianMap, LearnedMap, fit_learned_axes
-    from drivers.interfaces import ArmState
 
     vs = cfg.virtual_sensor
     dt = cfg.loop.period_s

@@ -14,7 +14,8 @@ from tqdm import tqdm
 from cell.data.dataset import Trajectory, load_trajectories
 from cell.data.samples import Samples, stack
 from cell.model.dynamics.learned import LearnedModel
-from cell.model.dynamics.physics import P1Model, P2Model
+from cell.model.dynamics.physics import P1Model
+from cell.model.dynamics.rigid_body import P2Model
 from cell.sensing.derivatives import FilterConfig
 
 log = logging.getLogger(__name__)

@@ -28,15 +28,16 @@ from cell.control.signals import raise_if_interrupted
 from cell.data.excitation.chain import paper_chain
 from cell.data.excitation.config import ExcitationConfig, read_excitation_config
 from cell.data.excitation.fourier import fourier_excitation
-from cell.data.excitation.moves import join_plans, random_moves, transfer
-from cell.data.excitation.plan import Plan, Segment
+from cell.data.excitation.motion import Motion, Segment
+from cell.data.excitation.moves import join_motions, random_moves, transfer
 from cell.data.excitation.sweep import sweep_excitation
+from cell.data.outputs import check_out_dir
 from cell.data.recorder import Recorder, new_run_dir, read_log
 from cell.model.robot import RobotModel
+from cell.model.specs import CELL_ROBOT, robot_by_name
 from drivers.configio import to_plain
 from drivers.errors import ConfigError, DataError
 from tasks.lab.playback import PlaybackTask
-from tasks.lab.robot import CELL_ROBOT, lab_robot
 
 log = logging.getLogger(__name__)
 
@@ -75,16 +76,16 @@ def collect(
     if robot != CELL_ROBOT:
         raise ConfigError(f"collect --robot {robot}: the simulated plant is a {CELL_ROBOT}; "
                           f"import another robot's logs instead (main.py import ur10e)")
-    out_dir = Path(out_dir)
+    out_dir = check_out_dir(Path(out_dir))  # before the motion: a dataset that cannot be written is lost
     out_dir.mkdir(parents=True, exist_ok=True)
-    robot_model = lab_robot(cfg)
+    robot_model = robot_by_name(cfg)
     ex = read_excitation_config(str(excitation) if excitation else None)  # a CLI path: relative to the cwd
     ex = dataclasses.replace(ex, seed=ex.seed + seed)
     dt = cfg.loop.period_s
     t0 = time.perf_counter()
     train_plan = training_plan(robot_model, cfg, ex, dt, samples, family, fourier_share, slow_share, sweep_share,
                                sweep_centre)
-    plans: list[tuple[str, Plan]] = [("train", train_plan)]
+    plans: list[tuple[str, Motion]] = [("train", train_plan)]
     if test_trajectories > 0:
         test_plan = random_moves(robot_model, cfg, ex, dt, test_trajectories, test_moves, list(ex.speeds),
                                  repeats=test_repeats, seed=ex.seed + 1000)
@@ -94,7 +95,7 @@ def collect(
     # Moves between the plans are planned now, so a blocked transfer fails before any motion.
     for k in range(1, len(plans)):
         lead = transfer(plans[k - 1][1].segments[-1].q[-1], plans[k][1].start, robot_model, cfg, ex, dt)
-        plans[k] = (plans[k][0], Plan(lead + plans[k][1].segments, dt, plans[k][1].info))
+        plans[k] = (plans[k][0], Motion(lead + plans[k][1].segments, dt, plans[k][1].info))
     rec_cfg = dataclasses.replace(cfg, recording=dataclasses.replace(
         cfg.recording, directory=str(out_dir / "runs"), chunk_rows=max(cfg.recording.chunk_rows, 5000)))
     results: dict[str, Any] = {}
@@ -104,7 +105,7 @@ def collect(
         for i, (split, plan) in enumerate(plans):
             if i == 0:
                 lead = transfer(cell.arm.read_state().q, plan.start, robot_model, cfg, ex, dt)
-                plan = Plan(lead + plan.segments, dt, plan.info)
+                plan = Motion(lead + plan.segments, dt, plan.info)
             res = _play(plan, split, cell, rec_cfg, robot_model)
             results[split] = res
             raise_if_interrupted(res["outcome"])
@@ -137,7 +138,7 @@ SLOW_SPEED_FRACTION = 0.02  # slow excitation: joint speeds up to 2 % of the lim
 
 def training_plan(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: float, samples: int,
                   family: str, fourier_share: float = 0.7, slow_share: float = 0.0, sweep_share: float = 0.0,
-                  sweep_centre: np.ndarray | None = None) -> Plan:
+                  sweep_centre: np.ndarray | None = None) -> Motion:
     """The training motion.  `slow_share` > 0 (what `prepare` collects) adds about `slow_share * samples`
     samples of slow, small-amplitude Fourier excitation around random centres to the family's
     `samples`: the joint speeds of careful task motion (0.005-0.05 rad/s), where the friction is in
@@ -158,7 +159,7 @@ def training_plan(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: 
                                       segment_base=max(s.segment for s in base.segments) + 1)
         except ValueError as exc:
             raise ConfigError(f"slow sweeps around the working posture: {exc}") from None
-        return Plan(base.segments + sweeps.segments, dt, {**base.info, "sweep": sweeps.info,
+        return Motion(base.segments + sweeps.segments, dt, {**base.info, "sweep": sweeps.info,
                                                           "sweep_share": sweep_share})
     if slow_share > 0:
         slow_n = int(samples * slow_share)
@@ -170,8 +171,8 @@ def training_plan(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: 
         slow = fourier_excitation(robot, cfg, dataclasses.replace(
             ex, seed=ex.seed + 500, fourier=dataclasses.replace(fc, trajectories=k)), dt, traj_base=300,
             segment_base=max(s.segment for s in fast.segments) + 1, speed_fraction=SLOW_SPEED_FRACTION)
-        joined = join_plans([fast, slow], robot, cfg, ex)
-        return Plan(joined.segments, dt, {**joined.info, "slow": slow.info, "slow_share": slow_share})
+        joined = join_motions([fast, slow], robot, cfg, ex)
+        return Motion(joined.segments, dt, {**joined.info, "slow": slow.info, "slow_share": slow_share})
     if family == "paper":
         return paper_chain(robot, cfg, ex, dt, max_samples=samples)
     if family in ("fourier", "mixed"):
@@ -186,16 +187,16 @@ def training_plan(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: 
             if sum(len(seg.q) for seg in kept) >= share:
                 break
             kept += [seg for seg in four.segments if seg.traj == tid]
-        four = Plan(kept, dt, {**four.info, "trajectories": len({seg.traj for seg in kept})})
+        four = Motion(kept, dt, {**four.info, "trajectories": len({seg.traj for seg in kept})})
         if family == "fourier":
             return four
         chain = paper_chain(robot, cfg, ex, dt, max_samples=max(1, samples - four.labelled_samples),
                             segment_base=max(s.segment for s in four.segments) + 1)
-        return join_plans([chain, four], robot, cfg, ex)
+        return join_motions([chain, four], robot, cfg, ex)
     raise ConfigError(f"--family {family}: unknown (paper, fourier, mixed)")
 
 
-def _play(plan: Plan, split: str, cell: Any, cfg: CellConfig, robot: RobotModel) -> dict[str, Any]:
+def _play(plan: Motion, split: str, cell: Any, cfg: CellConfig, robot: RobotModel) -> dict[str, Any]:
     """One plan through the control loop with safety and recording (no force plot: these runs are long)."""
     run_dir = new_run_dir(Path(cfg.recording.directory), f"collect-{split}")
     recorder = Recorder(run_dir, cfg.recording.chunk_rows)

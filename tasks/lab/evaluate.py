@@ -17,7 +17,9 @@ from cell.config import CellConfig, resolve
 from cell.data.dataset import Trajectory, load_manifest, load_split, manifest_files
 from cell.data.samples import stack, subsample_segments
 from cell.model.dynamics.artefact import save_model
-from cell.model.dynamics.physics import P2Model, identify_p2
+from cell.model.dynamics.physics import identify_p2
+from cell.model.dynamics.rigid_body import P2Model
+from cell.model.specs import CELL_ROBOT, robot_by_name
 from drivers.configio import dumps_strict, read_yaml
 from drivers.errors import ConfigError
 from tasks.lab.checks import (
@@ -28,8 +30,15 @@ from tasks.lab.checks import (
     uncertainty_report,
 )
 from tasks.lab.report import evaluation_table, plot_evaluation
-from tasks.lab.robot import CELL_ROBOT, lab_robot, lab_settings
-from tasks.lab.train import PAPER_FEATURES, TrainOptions, fit_model, load_samples
+from tasks.lab.train import (
+    DEFAULT_XGB,
+    PAPER_FEATURES,
+    TrainOptions,
+    default_net,
+    fit_model,
+    lab_settings,
+    load_samples,
+)
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +108,7 @@ def evaluate(
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
     robot_name = robot
-    robot_model = lab_robot(cfg, robot_name)
+    robot_model = robot_by_name(cfg, robot_name)
     opts = TrainOptions(nthread=nthread, seed=seed, max_trees=max_trees, **lab_settings(robot_name))
     dataset = Path(dataset)
     everything, sha = load_samples(dataset, "train", robot_model)
@@ -206,7 +215,6 @@ def evaluate(
 
 def tuned_options(opts: TrainOptions, dirs: Sequence[Path], max_epochs: int | None) -> dict[str, TrainOptions]:
     """Row name -> options holding a `tune` folder's best settings (its model/search.json)."""
-    from tasks.lab.train import DEFAULT_XGB, default_net
 
     out: dict[str, TrainOptions] = {}
     for d in dirs:

@@ -207,23 +207,34 @@ def import_ur10e(
     loaded: Sequence[str | Path] | None = None,
     max_gap_s: float = DEFAULT_MAX_GAP_S,
     payload_kg: float = LOADED_PAYLOAD_KG,
+    add_test: Sequence[str | Path] | None = None,
 ) -> dict[str, Any]:
     """Import UR10e CSV logs into `<out>` (one Parquet file per log, `dataset.yaml`, `import.json`).
 
     Without any of train/test/loaded the public logs under `shared_data_root()` are imported:
     train = the unloaded harmonic runs, test = the joint-wise runs, loaded = the loaded harmonic runs
     (`payload_kg`, default the published 2.805 kg).  Given paths (CSV files or folders) replace all
-    three defaults.
+    three defaults, except `test` alone, which replaces only the test split's.  `add_test` (CSV files or
+    folders) joins the test split either way: the collision recordings next to the joint-wise runs, the
+    harmonic runs still the training.
 
-    CLI: main.py import ur10e [--train PATH...] [--test PATH...] [--loaded PATH...] --out DIR
-         [--max-gap-s 0.05] [--payload-kg 2.805] [--json]
+    CLI: main.py import ur10e [--train PATH...] [--test PATH...] [--loaded PATH...] [--add-test PATH...]
+         --out DIR [--max-gap-s 0.05] [--payload-kg 2.805] [--json]
     """
     if not max_gap_s > 0:
         raise ConfigError(f"--max-gap-s {max_gap_s}: must be > 0 s")
     if not (payload_kg >= 0 and math.isfinite(payload_kg)):
         raise ConfigError(f"--payload-kg {payload_kg}: must be a finite mass >= 0 kg")
     given = {"train": train, "test": test, "loaded": loaded}
-    if any(given.values()):
+    if test and not train and not loaded:
+        # Only the test split chosen: the training keeps its defaults (an empty training split is never meant).
+        root = shared_data_root()
+        if not root.is_dir():
+            raise ConfigError(f"--test alone keeps the default training runs, which are not at {root}: "
+                              "give them with --train")
+        sources = {**default_sources(root), "test": expand_paths(test, "--test")}
+        origin = f"{root} (training), given paths (test)"
+    elif any(given.values()):
         sources = {k: expand_paths(v or [], f"--{k}") for k, v in given.items()}
         origin = "given paths"
     else:
@@ -232,6 +243,8 @@ def import_ur10e(
             raise ConfigError(f"the public UR10e logs are not at {root}: give the CSV files with --train/--test")
         sources = default_sources(root)
         origin = str(root)
+    if add_test:
+        sources["test"] = sources["test"] + expand_paths(add_test, "--add-test")
     if not sources["train"] and not sources["test"]:
         raise ConfigError("import ur10e: no CSV files for --train or --test")
     seen: dict[Path, str] = {}
@@ -265,6 +278,7 @@ def import_ur10e(
             steps.append(within)
             row = {
                 "source": str(src), "file": f"{split}/{dest.name}", "rows_kept": len(t),
+                "t0_log_s": float(t[0]),  # the first kept sample's time stamp (the dataset's t starts at 0)
                 "rows_dropped": parsed.rows_dropped, "dropped_by_reason": parsed.dropped,
                 "first_bad_line": parsed.first_bad_line, "trajectories": int(traj[-1]) + 1,
                 "duration_s": round(float(t[-1] - t[0]), 3),

@@ -11,14 +11,14 @@ import numpy as np
 
 from cell.control.loop import Command, Observation
 from cell.control.trajectory import JointMove
-from cell.data.excitation.plan import Plan
+from cell.data.excitation.motion import Motion
 from cell.model.robot import RobotModel
 from tasks.base import MachineTask, Trigger
 
 log = logging.getLogger(__name__)
 
 
-class S(enum.Enum):
+class PlaybackState(enum.Enum):
     MOVE_TO_START = "move_to_start"
     PLAY = "play"
     SETTLE = "settle"
@@ -27,7 +27,7 @@ class S(enum.Enum):
 
 
 class PlaybackTask(MachineTask):
-    """Plays a `Plan` sample by sample; every logged row carries the `traj` and `segment` it belongs to
+    """Plays a `Motion` sample by sample; every logged row carries the `traj` and `segment` it belongs to
     (-1 while moving to the start and settling), so the step log is a dataset as it is."""
 
     name = "collect"
@@ -38,7 +38,7 @@ class PlaybackTask(MachineTask):
 
     def __init__(
         self,
-        plan: Plan,
+        plan: Motion,
         robot: RobotModel,
         dt: float,
         move_speed_fraction: float = 0.2,
@@ -47,10 +47,10 @@ class PlaybackTask(MachineTask):
     ) -> None:
         if abs(plan.dt - dt) > 1e-12:
             raise ValueError(f"plan sampled at {plan.dt} s but the loop runs at {dt} s")
-        super().__init__(S.MOVE_TO_START, [
-            ("arrived", S.MOVE_TO_START, S.PLAY),
-            ("played_all", S.PLAY, S.SETTLE),
-            ("settled", S.SETTLE, S.DONE),
+        super().__init__(PlaybackState.MOVE_TO_START, [
+            ("arrived", PlaybackState.MOVE_TO_START, PlaybackState.PLAY),
+            ("played_all", PlaybackState.PLAY, PlaybackState.SETTLE),
+            ("settled", PlaybackState.SETTLE, PlaybackState.DONE),
         ])
         self.plan = plan
         self.robot = robot
@@ -72,7 +72,7 @@ class PlaybackTask(MachineTask):
 
     def step(self, obs: Observation) -> Command:
         label = (-1.0, -1.0)
-        if self.state is S.MOVE_TO_START:
+        if self.state is PlaybackState.MOVE_TO_START:
             if self.move is None:
                 self.move = JointMove(obs.q_cmd, self.q[0], self.speed)
             q = self.move.at(self.t_state + self.dt)
@@ -80,7 +80,7 @@ class PlaybackTask(MachineTask):
                 self.arrived()
             else:
                 self.t_state += self.dt
-        elif self.state is S.PLAY:
+        elif self.state is PlaybackState.PLAY:
             q = self.q[self.k]
             label = (float(self.traj[self.k]), float(self.segment[self.k]))
             self.k += 1
@@ -89,7 +89,7 @@ class PlaybackTask(MachineTask):
                 self.progress(1)
             if self.k >= len(self.q):
                 self.played_all()
-        elif self.state is S.SETTLE:
+        elif self.state is PlaybackState.SETTLE:
             q = self.q[-1]
             self.t_state += self.dt
             if self.t_state >= self.settle_cycles * self.dt:

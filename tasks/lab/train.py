@@ -12,17 +12,19 @@ import numpy as np
 
 from cell.config import CellConfig
 from cell.data.dataset import files_sha256, load_manifest, load_split, manifest_files
+from cell.data.outputs import check_out_dir
 from cell.data.samples import Samples, stack, subsample_segments
 from cell.model.dynamics.artefact import save_model
 from cell.model.dynamics.features import FeatureSpec
 from cell.model.dynamics.learned import LEARNERS, LearnedModel, XGBParams, fit_learned
 from cell.model.dynamics.nets import NetParams
-from cell.model.dynamics.physics import IdentificationConfig, P1Model, P2Model, identify_p2, nominal_p2
+from cell.model.dynamics.physics import P1Model, identify_p2
+from cell.model.dynamics.rigid_body import IdentificationConfig, P2Model, nominal_p2
 from cell.model.dynamics.uncertainty import CoverageConfig
 from cell.model.robot import RobotModel
+from cell.model.specs import CELL_ROBOT, load_robot_spec, robot_by_name
 from cell.sensing.derivatives import DerivativeMode
 from drivers.errors import ConfigError
-from tasks.lab.robot import CELL_ROBOT, lab_robot, lab_settings
 
 MODEL_KINDS = ("P1", "P2", "D", "H1", "H2", "H3")
 
@@ -140,6 +142,12 @@ class TrainOptions:
         return dataclasses.replace(self, features=feats)
 
 
+def lab_settings(robot: str = CELL_ROBOT) -> dict[str, Any]:
+    """How the lab models a robot (TrainOptions fields): its robot.yaml `identification` and `learning`."""
+    spec = load_robot_spec(robot)
+    return {"identification": spec.identification, "coverage": spec.learning}
+
+
 def load_samples(dataset: Path, split: Literal["train", "test"], robot: RobotModel, mode: DerivativeMode = "zero_phase",
                  samples: int | None = None, seed: int = 0) -> tuple[Samples, str]:
     """A split's trajectories stacked with derivatives (the manifest's filter), optionally cut to
@@ -204,8 +212,9 @@ def train(
     """
     if derivatives not in ("zero_phase", "causal"):
         raise ConfigError(f"--derivatives {derivatives}: unknown (zero_phase or causal)")
+    check_out_dir(Path(out))  # before the fit: a model that cannot be saved is minutes lost
     settings = lab_settings(robot)
-    robot_model = lab_robot(cfg, robot)
+    robot_model = robot_by_name(cfg, robot)
     opts = TrainOptions(derivatives=cast(DerivativeMode, derivatives), nthread=nthread, seed=seed, learner=learner,
                         **settings)
     if learner != "xgboost" and (window is not None or grouping is not None):

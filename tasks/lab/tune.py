@@ -20,11 +20,12 @@ from cell.config import CellConfig
 from cell.data.samples import Samples, subsample_segments
 from cell.model.dynamics.artefact import load_model, save_model
 from cell.model.dynamics.learned import LEARNERS, LearnedModel
-from cell.model.dynamics.physics import P2Model, identify_p2
+from cell.model.dynamics.physics import identify_p2
+from cell.model.dynamics.rigid_body import P2Model
+from cell.model.specs import CELL_ROBOT, robot_by_name
 from drivers.configio import dumps_strict
 from drivers.errors import CellError, ConfigError
-from tasks.lab.robot import CELL_ROBOT, lab_robot, lab_settings
-from tasks.lab.train import DEFAULT_XGB, TrainOptions, default_net, fit_model, load_samples
+from tasks.lab.train import DEFAULT_XGB, TrainOptions, default_net, fit_model, lab_settings, load_samples
 from tasks.lab.tune_space import Param, default_space, load_space
 
 log = logging.getLogger(__name__)
@@ -92,7 +93,7 @@ class Objective:
 
     def __init__(self, job: Job) -> None:
         self.job = job
-        self.robot = lab_robot(job.cfg, job.robot)
+        self.robot = robot_by_name(job.cfg, job.robot)
         self.opts = TrainOptions(learner=job.learner, nthread=job.nthread, seed=job.seed, max_epochs=job.max_epochs,
                                  **lab_settings(job.robot))
         # Split the whole training split by trajectory first, then cut each side to its share of `samples`

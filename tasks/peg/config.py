@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from cell.config import check_task_motion
 from cell.control.impedance import ImpedanceParams
 from drivers.configio import load_dataclass, require
 from drivers.errors import ConfigError
@@ -96,7 +97,7 @@ class PegConfig:
     insert_speed_limit_mps: float = 0.015  # the impedance law's step is clipped to this speed
     free_insert_speed_mps: float = 0.016  # feed while the peg meets no resistance in the hole
     # ... but slower until the peg is entry_depth_m deep: a peg centred 0.1-0.15 mm off chatters on the
-    # mouth's edge (at 5 mm/s over 4 mm, spikes up to 95-101 N in 50 trials; at 3 mm/s over 2 mm, <= 71 N).
+    # mouth's edge, harder the faster it goes (why: docs/peg.md, "Speeds").
     entry_speed_mps: float = 0.003
     entry_depth_m: float = 0.002
     # A peg can wedge only while it is shallower than about mu x D (Whitney's two-point-contact analysis);
@@ -122,10 +123,10 @@ class PegConfig:
     # (~20 ms), so the peak force grows with the speed (225 N at 16 mm/s, a wedge 2.5 mm in at the 0.1 mm fit).
     tight_insert_speed_mps: float = 0.006
     # ... and at most this many radial clearances per second: the tighter the fit, the harder the stick-slip at the
-    # wall (single 100-170 N samples at 0.05 mm): at 0.05 mm 4 mm/s, 3 of 15 trials stopped at 150 N at 6 mm/s, 0 at 4.
+    # wall (0.05 mm: 4 mm/s; why: docs/peg.md, "Tight fits").
     tight_feed_per_clearance_hz: float = 160.0
-    # The retract while the peg is in a tight bore (retract_slow_speed_mps otherwise): at 0.05 mm and 6 mm/s, 5 of 15
-    # trials were stopped at 150 N on the way out, at 3 mm/s 0-1 (what it costs is not insertion time).
+    # The retract while the peg is in a tight bore (retract_slow_speed_mps otherwise): stick-slip at the wall on the
+    # way out grows with the speed, and the retract's time is not insertion time (why: docs/peg.md, "Tight fits").
     tight_retract_speed_mps: float = 0.003
     bore_hold_fraction: float = 0.5  # the compliant lateral shift kept within this share of the radial clearance
     # ... and the reference kept within this share of the radial clearance of the measured tip, laterally: the peg
@@ -152,8 +153,8 @@ class PegConfig:
     # the Jacobian map the virtual sensor erred by +-0.5 N·m while the arm moved slowly (friction at low
     # joint speeds) and up to ~1.3 N·m during the fast feed; at 0.3 its errors shifted the peg into the wall
     # (0.2 mm radial clearance) within ~0.1 s.  With the contact map its |M| in the free feed stays under
-    # 0.54 N·m (99th percentile, 10 trials); 0.8 left the bench's moments and its one failure as they were
-    # (seed 2; one trial's 121 N hit in the feed fell to 67 N), so it stays at 1.5 until measured further.
+    # 0.54 N·m (99th percentile); a lower band bought nothing measurable, so it stays at 1.5 (docs/peg.md,
+    # "Force-source thresholds").
     # The centred peg on the surveyed axis needs no compliance to go in.
     comply_deadband_nm: float = 1.5
     max_tilt_deg: float = 15.0  # the peg tilted further than this from vertical: fail
@@ -168,8 +169,8 @@ class PegConfig:
     move_speed_fraction: float = 0.15  # of the joint speed limits, for the move to the start pose
     # Hold still this long before re-zeroing the force source (at the start and above the mouth before the
     # approach): after a move the joints creep for about a second and the hybrid model reads Coulomb
-    # friction from that creep's sign.  At 0.3 s the virtual moments during the insertion erred by
-    # 0.18 (Mx) / 0.30 (My) N·m on average, at 1.2 s by 0.14 / 0.28 (50 trials).
+    # friction from that creep's sign: a longer hold lowers the virtual moments' errors during the
+    # insertion (why: docs/peg.md, "Force-source thresholds").
     tare_time_s: float = 1.2
     max_duration_s: float = 40.0
     impedance: ImpedanceParams = field(default_factory=lambda: ImpedanceParams(m=1.0, b=50.0, k_tau=0.015, k_v=0.0))
@@ -233,6 +234,7 @@ class PegConfig:
             require(getattr(self, name) > 0, f"{where}.{name}", f"must be > 0, got {getattr(self, name)}")
         require(self.twist_amplitude_deg >= 0, f"{where}.twist_amplitude_deg", "must be >= 0")
         require(self.move_speed_fraction <= 1, f"{where}.move_speed_fraction", "must be <= 1")
+        check_task_motion(self, where)
         require(self.hole_diameter_m > self.peg_diameter_m, f"{where}.hole_diameter_m",
                 f"must exceed peg_diameter_m ({self.peg_diameter_m})")
         require(self.wall_clearance_m is None or self.wall_clearance_m >= 0, f"{where}.wall_clearance_m",

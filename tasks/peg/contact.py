@@ -38,3 +38,19 @@ def classify(fz: float, mx: float, my: float, low_depth: float, high_depth: floa
     if high_depth < cfg.engage_depth_m or m >= cfg.side_moment_nm:
         return Contact.STUCK_INSIDE
     return Contact.ALIGNED
+
+
+# What the strategy acts on in the states a probe chose: the probe's classification (the wrench there is a
+# light contact or none, which the per-cycle classification reads as free).
+_CHOSEN = {"back_off": Contact.STUCK_OUTSIDE, "slide": Contact.STUCK_INSIDE, "rotate": Contact.STUCK_INSIDE}
+
+
+def believed(state: str, contact: Contact, high_depth: float, cfg: PegConfig) -> Contact:
+    """The classified contact the task works with (the plot's and the view's): the probe's verdict in the
+    states it chose, the peg in the bore while inserting (aligned unless a side load says stuck), else this
+    cycle's classification."""
+    if state in _CHOSEN:
+        return _CHOSEN[state]
+    if state in ("insert", "realign", "release") and contact == Contact.FREE and high_depth >= cfg.engage_depth_m:
+        return Contact.ALIGNED
+    return contact

@@ -1,4 +1,5 @@
-"""Virtual-vs-measured wrench errors of a peg run, scored over the insertion states (bench and run summary)."""
+"""Virtual-vs-measured wrench errors of a peg trial, scored over the insertion states (the bench; a run's summary
+scores the same states through tasks/runner.py, under the same names)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ import numpy as np
 from tasks.peg.states import INSERTION_STATES
 
 WRENCH_AXES = ("mx", "my", "fz")  # the paper's 3-axis comparison: what the strategy reads
+# Their mean absolute errors, named as every run's summary names them (tasks/runner.py virtual_vs_sensor).
+ERROR_KEYS = ("virtual_vs_sensor_mx_mae_nm", "virtual_vs_sensor_my_mae_nm", "virtual_vs_sensor_fz_mae_n")
 
 
 def wrench_abs_errors(states: Any, virtual: np.ndarray, measured: np.ndarray) -> np.ndarray:
@@ -27,7 +30,7 @@ def wrench_errors(table: Any) -> dict[str, Any]:
         return {}
     e = wrench_abs_errors(d["state"], np.column_stack([d[k] for k in WRENCH_AXES]),
                           np.column_stack([d[f"sensor_{k}"] for k in WRENCH_AXES]))
-    out: dict[str, Any] = {"wrench_error_samples": len(e)}
-    for i, name in enumerate(("mae_mx_nm", "mae_my_nm", "mae_fz_n")):
+    out: dict[str, Any] = {"virtual_vs_sensor_samples": len(e)}
+    for i, name in enumerate(ERROR_KEYS):
         out[name] = float(e[:, i].mean()) if len(e) else None
     return out

@@ -161,9 +161,9 @@ class WallSearch:
         if dist is None:  # blocked: drop the wound-up reference so the wall is not pushed
             ref.translation[:2] = tip.translation[:2]
             if tip.translation[2] > ref.translation[2] and self.phase < len(phases) - 1:
-                # Nor dropped on: a tip that climbed the mouth's edge fell by the whole climb as the next move
-                # took it off the edge (0.17 mm in a period: a 99 N hit, 21.7 mm peg, seed 5, trial 49).  The
-                # reference starts from the tip and goes back down at climb_return_speed_mps.
+                # Nor dropped on: a tip that climbed the mouth's edge falls by the whole climb within a period
+                # as the next move takes it off the edge, so the reference starts from the tip and goes back
+                # down at climb_return_speed_mps (why: docs/peg.md, "The slide").
                 self.z_return = float(ref.translation[2])
                 ref.translation[2] = tip.translation[2]
         if self.phase == 2:

@@ -8,7 +8,7 @@ from typing import Any
 from tasks.base import Trigger
 
 
-class S(enum.Enum):
+class PegState(enum.Enum):
     MOVE_TO_START = "move_to_start"
     TARE = "tare"
     SURVEY = "survey"  # touch the fixture's top face at a few points: its normal is the hole's axis
@@ -27,22 +27,22 @@ class S(enum.Enum):
 
 # (trigger, source, destination); `fail` is allowed from anywhere (MachineTask)
 TRANSITIONS: list[tuple[str, Any, Any]] = [
-    ("arrived", S.MOVE_TO_START, S.TARE),
-    ("tared", S.TARE, S.SURVEY),
-    ("surveyed", S.SURVEY, S.APPROACH),
-    ("touched", S.APPROACH, S.PROBE),
-    ("outside", S.PROBE, S.BACK_OFF),
-    ("false_alarm", S.PROBE, S.APPROACH),
-    ("backed_off", S.BACK_OFF, S.APPROACH),
-    ("inside", S.PROBE, S.SLIDE),
-    ("blocked", S.SLIDE, S.ROTATE),
-    ("upright", S.ROTATE, S.INSERT),
-    ("aligned", [S.APPROACH, S.PROBE, S.SLIDE], S.INSERT),
-    ("stalled", S.INSERT, S.REALIGN),
-    ("realigned", S.REALIGN, S.INSERT),
-    ("inserted", S.INSERT, S.RELEASE),
-    ("released", S.RELEASE, S.RETRACT),
-    ("retracted", S.RETRACT, S.DONE),
+    ("arrived", PegState.MOVE_TO_START, PegState.TARE),
+    ("tared", PegState.TARE, PegState.SURVEY),
+    ("surveyed", PegState.SURVEY, PegState.APPROACH),
+    ("touched", PegState.APPROACH, PegState.PROBE),
+    ("outside", PegState.PROBE, PegState.BACK_OFF),
+    ("false_alarm", PegState.PROBE, PegState.APPROACH),
+    ("backed_off", PegState.BACK_OFF, PegState.APPROACH),
+    ("inside", PegState.PROBE, PegState.SLIDE),
+    ("blocked", PegState.SLIDE, PegState.ROTATE),
+    ("upright", PegState.ROTATE, PegState.INSERT),
+    ("aligned", [PegState.APPROACH, PegState.PROBE, PegState.SLIDE], PegState.INSERT),
+    ("stalled", PegState.INSERT, PegState.REALIGN),
+    ("realigned", PegState.REALIGN, PegState.INSERT),
+    ("inserted", PegState.INSERT, PegState.RELEASE),
+    ("released", PegState.RELEASE, PegState.RETRACT),
+    ("retracted", PegState.RETRACT, PegState.DONE),
 ]
 
 
@@ -68,5 +68,5 @@ class PegTriggers:
 
 
 # The states from the first approach to the end of the insertion: the wrench errors are scored over these.
-INSERTION_STATES = (S.APPROACH.value, S.PROBE.value, S.BACK_OFF.value, S.SLIDE.value, S.ROTATE.value,
-                    S.INSERT.value, S.REALIGN.value)
+INSERTION_STATES = tuple(s.value for s in (PegState.APPROACH, PegState.PROBE, PegState.BACK_OFF, PegState.SLIDE,
+                                             PegState.ROTATE, PegState.INSERT, PegState.REALIGN))

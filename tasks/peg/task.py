@@ -18,11 +18,10 @@ from tasks.base import MachineTask
 from tasks.peg.bore import BoreCentring
 from tasks.peg.compliance import comply, regulate, relieve, rotate_upright
 from tasks.peg.config import PegConfig
-from tasks.peg.contact import Contact, classify
+from tasks.peg.contact import Contact, believed, classify
 from tasks.peg.geometry import Segment, entry_pose, on_segments, rim_points, tilt_angle, tilt_of, wall_pivot
-from tasks.peg.scoring import wrench_errors
 from tasks.peg.search import WallSearch, plan_back_off
-from tasks.peg.states import TRANSITIONS, PegTriggers, S
+from tasks.peg.states import INSERTION_STATES, TRANSITIONS, PegState, PegTriggers
 from tasks.peg.survey import Survey, fit_face, hole_frame
 from tasks.peg.touch import GuardedDescent
 
@@ -47,6 +46,9 @@ class PegInHoleTask(MachineTask, PegTriggers):
     """
 
     name = "peg-in-hole"
+    # Scored over the insertion (as the bench scores a trial); touched on the survey's points and the approach.
+    working_states = INSERTION_STATES
+    touch_states = (PegState.SURVEY.value, PegState.APPROACH.value, PegState.PROBE.value)
 
     def __init__(self, cfg: PegConfig, robot: RobotModel, hole_xy: np.ndarray, hole_top: float, dt: float,
                  q_home: np.ndarray) -> None:
@@ -56,13 +58,14 @@ class PegInHoleTask(MachineTask, PegTriggers):
         self.hole_xy = np.asarray(cfg.hole_xy if cfg.hole_xy is not None else hole_xy, float)
         self.hole_top = hole_top
         self.radius = cfg.peg_diameter_m / 2
-        super().__init__(S.MOVE_TO_START, TRANSITIONS)
+        super().__init__(PegState.MOVE_TO_START, TRANSITIONS)
         self.lead = np.array([math.cos(math.radians(cfg.lead_direction_deg)),
                               math.sin(math.radians(cfg.lead_direction_deg)), 0.0])
         # The hole frame: base-frame coordinates of a fixture whose face is level at `hole_top` through the
-        # nominal centre.  Identity until the survey has measured the face; then world = T * hole frame.
-        self.T = pin.SE3.Identity()
-        self.Ti = pin.SE3.Identity()
+        # nominal centre.  Identity until the survey has measured the face; then a world pose is
+        # world_from_hole * (the same pose in the hole frame).
+        self.world_from_hole = pin.SE3.Identity()
+        self.hole_from_world = pin.SE3.Identity()
         self.hole_tilt_deg: float | None = None
         self.start = entry_pose(cfg, hole_top, self.lead, self.hole_xy)  # approach start, hole frame
         self.survey = Survey(cfg, dt, self.hole_xy, hole_top, self.lead)
@@ -113,14 +116,15 @@ class PegInHoleTask(MachineTask, PegTriggers):
         self.t = obs.t
         w = obs.wrench
         fz, mx, my = float(w.force[2]), float(w.torque[0]), float(w.torque[1])
-        tip = self.Ti * self.robot.tcp_pose(obs.state.q)  # measured pose (hole frame): where the peg really is
+        # The measured pose in the hole frame: where the peg really is.
+        tip = self.hole_from_world * self.robot.tcp_pose(obs.state.q)
         self._tip = tip
         low, high = rim_points(tip, self.radius)
         self.depth = self.hole_top - float(tip.translation[2])
         self.low_depth = self.hole_top - float(low[2])
         self.high_depth = self.hole_top - float(high[2])
         self.tilt = tilt_of(tip.rotation)
-        if self.state not in (S.MOVE_TO_START, S.TARE):
+        if self.state not in (PegState.MOVE_TO_START, PegState.TARE):
             self.max_depth = max(self.max_depth, self.depth)
             if np.isfinite(fz):
                 self.peak_force = max(self.peak_force, abs(fz))
@@ -130,15 +134,17 @@ class PegInHoleTask(MachineTask, PegTriggers):
         if contact != self.contact:
             self.contact_log.append(f"{obs.t:.2f}s {contact.value}")
         self.contact = contact
-        if self.state not in (S.MOVE_TO_START, S.TARE, S.DONE, S.FAILED):
+        if self.state not in (PegState.MOVE_TO_START, PegState.TARE, PegState.DONE, PegState.FAILED):
             self._check_limits(fz, mx, my)
         rebias = not self.done and bool(getattr(self, f"_{self.state.value}")(obs, fz, mx, my))
         q = obs.q_cmd if self.done else self._command(obs)
         self.t_state += self.dt
         return Command(
             q=q,
-            log={"contact": self.contact.value, "depth": self.depth, "low_depth": self.low_depth,
-                 "high_depth": self.high_depth, "fz_setpoint": self._setpoint,
+            log={"contact": self.contact.value, "contact_state": believed(self.state.value, contact,
+                                                                            self.high_depth, self.cfg).value,
+                 "depth": self.depth, "low_depth": self.low_depth, "high_depth": self.high_depth,
+                 "fz_setpoint": self._setpoint,
                  "tip_x": float(tip.translation[0]), "tip_y": float(tip.translation[1]),
                  "tip_z": float(tip.translation[2]), "tilt_x": float(self.tilt[0]), "tilt_y": float(self.tilt[1]),
                  "ref_x": float(self.ref.translation[0]), "ref_y": float(self.ref.translation[1]),
@@ -147,12 +153,12 @@ class PegInHoleTask(MachineTask, PegTriggers):
         )
 
     def _command(self, obs: Observation) -> np.ndarray:
-        if self.state == S.MOVE_TO_START:
+        if self.state == PegState.MOVE_TO_START:
             assert self.move is not None
             return self.move.at(self.t_state)
-        if self.state == S.TARE:
+        if self.state == PegState.TARE:
             return self.q_start
-        q, _ = self.robot.ik(self.T * self.ref, obs.q_cmd, iters=3, tol=1e-7)
+        q, _ = self.robot.ik(self.world_from_hole * self.ref, obs.q_cmd, iters=3, tol=1e-7)
         return q
 
     def _check_limits(self, fz: float, mx: float, my: float) -> None:
@@ -167,7 +173,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
                               f"({self.state.value}, depth {self.depth * 1e3:.1f} mm)")
         elif tilt > c.max_tilt_deg:
             self.fail_because(f"peg tilted {tilt:.1f} deg, beyond the {c.max_tilt_deg:.1f} deg limit")
-        elif self.state in (S.APPROACH, S.PROBE, S.BACK_OFF) and \
+        elif self.state in (PegState.APPROACH, PegState.PROBE, PegState.BACK_OFF) and \
                 np.linalg.norm(rim_points(self.ref, self.radius)[0][:2] - self.hole_xy) > c.max_offset_m + 1e-9:
             self.fail_because(f"no hole within {c.max_offset_m * 1e3:.1f} mm of the nominal position "
                               f"after {self.probes} probes")
@@ -220,11 +226,11 @@ class PegInHoleTask(MachineTask, PegTriggers):
             self.fail_because(f"fixture face tilted {tilt:.1f} deg, beyond the {self.cfg.max_hole_tilt_deg:.1f} "
                               "deg the task accepts")
             return False
-        ref_world, tip_world = self.T * self.ref, self.T * self._tip
-        self.T = hole_frame(n, self.hole_xy, z0, self.hole_top)
-        self.Ti = self.T.inverse()
-        self.ref = self.Ti * ref_world
-        self._tip = self.Ti * tip_world
+        ref_world, tip_world = self.world_from_hole * self.ref, self.world_from_hole * self._tip
+        self.world_from_hole = hole_frame(n, self.hole_xy, z0, self.hole_top)
+        self.hole_from_world = self.world_from_hole.inverse()
+        self.ref = self.hole_from_world * ref_world
+        self._tip = self.hole_from_world * tip_world
         log.info("peg-in-hole: fixture face tilted %.2f deg (normal %s), mouth at %.2f mm (nominal %.2f)", tilt,
                  np.round(n, 4).tolist(), z0 * 1e3, self.hole_top * 1e3)
         return True
@@ -457,7 +463,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
         log.info("peg-in-hole: %s (depth %.1f mm)", why, self.depth * 1e3)
         self.law.reset()
         self._depth_hist = []
-        if self.state == S.ROTATE:
+        if self.state == PegState.ROTATE:
             self.upright()
         else:
             self.aligned()
@@ -477,21 +483,18 @@ class PegInHoleTask(MachineTask, PegTriggers):
             "max_depth_m": self.max_depth if np.isfinite(self.max_depth) else None,
             "probes": self.probes,
             "hole_tilt_deg": self.hole_tilt_deg,
-            "hole_axis": self.T.rotation[:, 2].round(6).tolist() if self.hole_tilt_deg is not None else None,
+            "hole_axis": (self.world_from_hole.rotation[:, 2].round(6).tolist()
+                          if self.hole_tilt_deg is not None else None),
             "realignments": self.realigns,
             "peak_force_n": self.peak_force,
             "peak_moment_nm": self.peak_moment,
             "contact_changes": len(self.contact_log),
         }
 
-    # Hooks the runner uses for peg runs (the recording has the virtual and the measured wrench).
+    # The runner's hook for the figure (its virtual-vs-measured figures come from the runner's own tap).
     @staticmethod
-    def log_summary(table: Any) -> dict[str, Any]:
-        return wrench_errors(table)
-
-    @staticmethod
-    def plot_run(table: Any, path: Path, title: str) -> Path:
+    def plot_run(table: Any, path: Path, title: str, limits: dict[str, list[tuple[str, float]]] | None = None) -> Path:
         from cell.view.report import plot_peg_run
 
-        return plot_peg_run(table, path, title)
+        return plot_peg_run(table, path, title, limits)
 

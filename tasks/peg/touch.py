@@ -90,7 +90,7 @@ class GuardedDescent:
             elif recent > 0.5 * step and z_now < self.press_z - 0.5 * c.max_lead_m:
                 # Moving on below where it stopped: it was a stick, not a face.  A tip that bounced off the
                 # face and is falling back onto it is not below that height: the lead stays cut (given
-                # back there, it pressed a bench trial's next impact to 174 N).
+                # back, it presses the next impact into the face: docs/peg.md, "Touches").
                 self.pressing = False
         z = float(ref.translation[2]) - v * self.dt
         if self.pressing:  # take back the lead the servo had wound up: it presses into the face

@@ -39,22 +39,22 @@ from cell.control.loop import Command, ControlLoop, Observation
 from cell.control.safety import SafetyMonitor
 from cell.control.signals import raise_if_interrupted
 from cell.control.trajectory import JointMove, tool_down_pose
-from cell.data.dataset import files_sha256, manifest_files
+from cell.data.dataset import files_sha256, load_manifest, manifest_files
 from cell.data.recorder import Recorder, new_run_dir, read_log
 from cell.model.dynamics.artefact import load_model
 from cell.model.dynamics.fastpredict import FastPredictor
 from cell.model.dynamics.learned import LearnedModel
-from cell.model.dynamics.physics import urdf_sha256
+from cell.model.dynamics.rigid_body import urdf_sha256
 from cell.model.robot import RobotModel
+from cell.sensing.artefacts import calibration_matches
 from cell.sensing.observer import make_observer
 from cell.sensing.virtual_sensor import (
     OBSERVERS,
+    PERIOD_TOLERANCE,
     Calibration,
-    check_calibration,
     contact_map,
     load_observer_model,
     model_identity,
-    read_calibration_doc,
     save_calibration,
     tool_identity,
 )
@@ -63,6 +63,8 @@ from drivers.configio import to_plain
 from drivers.errors import CellError, ConfigError, DataError
 from drivers.interfaces import ArmState
 from tasks.base import MachineTask, Trigger
+from tasks.lab.collect import collect
+from tasks.lab.train import train
 
 log = logging.getLogger(__name__)
 
@@ -286,7 +288,7 @@ def calibrate(
     dt = cfg.loop.period_s
     model_dir = Path(model_dir) if model_dir is not None else vs.path("model", tool)
     out_dir = Path(out_dir) if out_dir is not None else vs.path("calibration", tool)
-    model = load_observer_model(model_dir, robot)
+    model = load_observer_model(model_dir, robot, cfg.loop.period_s)
     targets = posture_targets(robot, cal, np.asarray(cfg.robot.home, float))
     base = Path(cfg.recording.directory)
     holder = open_cell_fn()
@@ -390,18 +392,6 @@ def calibrate(
 
 
 # ========================================================================================= prepare
-def calibration_matches(cfg: CellConfig, robot: RobotModel, tool: str, model_dir: Path, cal_dir: Path) -> str:
-    """'' when the calibration at `cal_dir` fits this robot, tool and model; else why not."""
-    try:
-        model = load_model(model_dir, robot)
-        if not isinstance(model, LearnedModel):
-            return f"{model_dir} is not a hybrid model"
-        check_calibration(read_calibration_doc(cal_dir), str(cal_dir), robot, tool, model_dir, model)
-    except DataError as exc:
-        return str(exc)
-    return ""
-
-
 PREPARE_SLOW_SHARE = 0.25
 PREPARE_SWEEP_SHARE = 0.4  # of `samples`: slow sweeps around the tool's working posture (when given)
 
@@ -426,8 +416,6 @@ def prepare(
 
     CLI: main.py prepare [--tool wipe|peg] [--cell sim] [--samples 40000] [--force] [--json]
     """
-    from tasks.lab.collect import collect  # the model lab's command bodies
-    from tasks.lab.train import train
 
     t0 = time.perf_counter()
     vs = cfg.virtual_sensor
@@ -438,6 +426,11 @@ def prepare(
     if stale:
         log.warning("prepare %s: %s was collected without the slow sweeps around the working posture: "
                     "collecting it again", tool, data_dir)
+    period = dataset_period(manifest) if manifest.exists() else None
+    if period is not None and abs(period - cfg.loop.period_s) > PERIOD_TOLERANCE * cfg.loop.period_s:
+        log.warning("prepare %s: %s was sampled every %.1f ms, this cell runs every %.1f ms: collecting it again",
+                    tool, data_dir, period * 1e3, cfg.loop.period_s * 1e3)
+        stale = True
     if force or stale or not manifest.exists():
         log.info("prepare %s: collecting %d samples with the %s tool into %s", tool, samples, tool, data_dir)
         sweeps = PREPARE_SWEEP_SHARE if working_posture is not None else 0.0
@@ -476,6 +469,14 @@ def prepare(
             "steps": steps, "wall_s": round(time.perf_counter() - t0, 1)}
 
 
+def dataset_period(manifest: Path) -> float | None:
+    """The sample period a dataset's manifest states (None when it states none or cannot be read)."""
+    try:
+        return load_manifest(manifest).period_s
+    except DataError:
+        return None
+
+
 def _has_sweeps(data_dir: Path) -> bool:
     """Whether the dataset's collection included the slow sweeps (its collect.json says so)."""
     try:
@@ -483,15 +484,3 @@ def _has_sweeps(data_dir: Path) -> bool:
     except (OSError, ValueError, KeyError, TypeError):
         return False
     return isinstance(info, dict) and "sweep" in info
-
-
-def artefacts_missing(cfg: CellConfig, robot: RobotModel, tool: str) -> str:
-    """'' when the tool's model and calibration are in place and match; else what is wrong."""
-    vs = cfg.virtual_sensor
-    model_dir, cal_dir = vs.path("model", tool), vs.path("calibration", tool)
-    if not (model_dir / "model.json").exists():
-        return f"no torque model at {model_dir}"
-    if not (cal_dir / "calibration.json").exists():
-        return f"no calibration at {cal_dir}"
-    return calibration_matches(cfg, robot, tool, model_dir, cal_dir)
-

@@ -19,6 +19,8 @@ import numpy as np
 
 from drivers.errors import DriverError
 from drivers.interfaces import JointLimits
+from drivers.tm5.ethernet import TMEthernetArm
+from drivers.tm5.ethernet_config import TMEthernetConfig
 from drivers.tm5.modbus import TM5ModbusArm
 from drivers.wacoh.driver import WacohSensor
 
@@ -27,6 +29,13 @@ log = logging.getLogger(__name__)
 Status = Literal["pass", "fail", "skipped"]
 LIMIT_MARGIN_RAD = math.radians(2.0)  # a reading this far past a joint limit is no joint angle
 HEARTBEAT_S = 0.5  # the robot counter must advance within this
+# A command that takes longer than this many control periods to pass the Listen node's queue acts too late
+# for the impedance loop closed through it.
+ROUND_TRIP_PERIODS = 4
+RATE_WINDOW_S = 1.0  # the state stream is watched this long to measure its rate and jitter
+# The measured rate may fall this much short of 1/period before the check fails: a one-second window
+# over a polled counter counts a sample more or less at either end.
+RATE_TOLERANCE = 0.95
 TARE_DRIFT_N = 0.5  # |mean(last quarter) - mean(first quarter)| of the force after a tare
 TARE_NOISE_N = 1.0  # standard deviation of |F| at rest
 READ_LOSS = 0.02  # share of sensor reads that may come back empty or corrupted
@@ -39,10 +48,6 @@ class Check:
     status: Status
     detail: str
     fix: str = ""
-
-    @property
-    def passed(self) -> bool:
-        return self.status != "fail"
 
 
 @dataclass
@@ -59,30 +64,29 @@ class DoctorSettings:
 class Doctor:
     """Runs the checks in order on the devices given (either may be None when the cell has none)."""
 
-    def __init__(self, arm: TM5ModbusArm | None, sensor: WacohSensor | None, limits: JointLimits,
+    def __init__(self, arm: TM5ModbusArm | TMEthernetArm | None, sensor: WacohSensor | None, limits: JointLimits,
                  settings: DoctorSettings) -> None:
         self.arm, self.sensor, self.limits, self.s = arm, sensor, limits, settings
         self.checks: list[Check] = []
 
     def run(self) -> list[Check]:
-        has_arm, has_sensor = self.arm is not None, self.sensor is not None
-        reach = self._step("arm_reachable", self._reachable, (
-            "check the cable and the controller's address (devices.arm.settings.host/port) and that its "
-            "Modbus TCP server is on (TMflow: Setting > Connection > Modbus)"), run=has_arm)
-        connected = self._step("modbus_connect", self._connect, (
-            "check devices.arm.settings.unit_id and that nothing else holds the controller's Modbus connection"),
-            run=reach)
-        mapped = self._step("register_map", self._register_map, (
-            "the registers do not read as TM5-700 joint data: check the controller's firmware register map and "
-            "devices.arm.settings.user_area against the robot-side program (docs/robot-side-program.md)"),
-            run=connected)
-        alive = self._step("robot_program_heartbeat", self._heartbeat, (
-            "start the robot-side program on the controller and check it is not paused or stalled "
-            "(docs/robot-side-program.md)"), run=mapped)
+        has_sensor = self.sensor is not None
+        alive = self._tm_ethernet_checks() if isinstance(self.arm, TMEthernetArm) else self._modbus_checks()
+        self._step("state_rate", self._state_rate, (
+            "the arm's state arrives slower than the control loop needs it: set loop.period_s to the measured "
+            "period (TM's Ethernet Slave broadcasts every ~15.6 ms: config/tm-ethernet.yaml), or make the "
+            "robot-side program's cycle keep loop.period_s (docs/real-cell.md)"), run=alive)
         self._step("estop_and_errors", self._status, (
             "release the E-stop, clear the controller's error in TMflow and start the project; a protective stop "
             "of the robot-side program (its watchdog's latched hold) is released when a host arms the arm"),
             run=alive)
+        if isinstance(self.arm, TMEthernetArm):
+            node = self._step("listen_node", self._listen_node, (
+                "start the project in TMflow and let its flow reach the Listen node (a project with a Listen "
+                "node, Setting > Connection > Listen node enabled; docs/real-cell.md route B)"), run=alive)
+            self._step("command_round_trip", self._round_trip, (
+                "the Listen node answers slowly: a direct cable, no other client on port 5890, project speed "
+                "100 % (docs/real-cell.md)"), run=node)
         port = self._step("sensor_port", self._sensor_connect, (
             "check devices.sensor.settings.port (the device exists, your user may open it: dialout group), "
             "the baud rate, and that the sensor is powered"), run=has_sensor)
@@ -100,10 +104,42 @@ class Doctor:
             "on the host, a quieter machine, or a longer loop.period_s"), run=alive)
         return self.checks
 
+    def _modbus_checks(self) -> bool:
+        """The Modbus route's first checks; True when the robot-side program's counter advances."""
+        reach = self._step("arm_reachable", self._reachable, (
+            "check the cable and the controller's address (devices.arm.settings.host/port) and that its "
+            "Modbus TCP server is on (TMflow: Setting > Connection > Modbus)"), run=self.arm is not None)
+        connected = self._step("modbus_connect", self._connect, (
+            "check devices.arm.settings.unit_id and that nothing else holds the controller's Modbus connection"),
+            run=reach)
+        mapped = self._step("register_map", self._register_map, (
+            "the registers do not read as TM5-700 joint data: check the controller's firmware register map and "
+            "devices.arm.settings.user_area against the robot-side program (docs/robot-side-program.md)"),
+            run=connected)
+        return self._step("robot_program_heartbeat", self._heartbeat, (
+            "start the robot-side program on the controller and check it is not paused or stalled "
+            "(docs/robot-side-program.md)"), run=mapped)
+
+    def _tm_ethernet_checks(self) -> bool:
+        """TM's channels' first checks; True when the Ethernet Slave streams a readable table."""
+        reach = self._step("arm_reachable", self._reachable, (
+            "check the cable and devices.arm.settings.host, and that the Ethernet Slave is enabled (TMflow: "
+            "Setting > Connection > Ethernet Slave, Data Table Setting: import TM's "
+            "Data_Table_Setting_TM_ROS_Default.xml)"))
+        table = self._step("slave_table", self._slave_table, (
+            "set the Ethernet Slave's Communication Mode to BINARY and its transmit table to TM's "
+            "Data_Table_Setting_TM_ROS_Default.xml (or tick Joint_Angle, Joint_Speed, Joint_Torque, Robot_Error, "
+            "ESTOP, Project_Run by hand)"), run=reach)
+        return self._step("joint_data", self._register_map, (
+            "the table's joint items do not read as TM5-700 joint data (degrees, deg/s, mN·m): check the items "
+            "and their types in the Data Table Setting"), run=table)
+
     # ------------------------------------------------------------------------------------ plumbing
     def _step(self, name: str, fn: Callable[[], str], fix: str, run: bool = True) -> bool:
         if not run:
-            self.checks.append(Check(name, "skipped", "not run: an earlier check failed"))
+            no_sensor = name.startswith("sensor_") and self.sensor is None
+            self.checks.append(Check(name, "skipped", "not run: this cell has no F/T sensor" if no_sensor
+                                     else "not run: an earlier check failed"))
             return False
         try:
             detail = fn()
@@ -118,14 +154,40 @@ class Doctor:
     # ------------------------------------------------------------------------------------ the arm
     def _reachable(self) -> str:
         assert self.arm is not None
-        host, port = self.arm.config.host, self.arm.config.port
+        cfg = self.arm.config
+        host, port = cfg.host, cfg.slave_port if isinstance(cfg, TMEthernetConfig) else cfg.port
         t0 = time.perf_counter()
         with socket.create_connection((host, port), timeout=2.0):
             pass
         return f"{host}:{port} accepts TCP connections ({(time.perf_counter() - t0) * 1e3:.1f} ms)"
 
+    def _slave_table(self) -> str:
+        assert isinstance(self.arm, TMEthernetArm)
+        self.arm.connect()  # refuses a STRING or JSON table, or one without the joint items, saying what to change
+        table = self.arm.latest_table
+        assert table is not None, "no data table arrived"
+        optional = [name for name in ("Robot_Error", "ESTOP", "Project_Run", "Project_Pause", "Robot_Link")
+                    if name not in table.items]
+        detail = f"binary table, {len(table.items)} items, joint angles, speeds and torques present"
+        assert not optional, f"{detail}; missing {', '.join(optional)}: the cell cannot see E-stop and errors"
+        return detail
+
+    def _listen_node(self) -> str:
+        assert isinstance(self.arm, TMEthernetArm)
+        status = self.arm.probe_listen_node()
+        assert status.in_node, "TMSTA 00 answers false: the project is not in its Listen node"
+        return f"the project is in its Listen node ({status.message!r})"
+
+    def _round_trip(self) -> str:
+        assert isinstance(self.arm, TMEthernetArm)
+        ms = self.arm.command_round_trip() * 1e3
+        detail = f"QueueTag to done in {ms:.1f} ms ({ms / (self.s.period_s * 1e3):.1f} control periods)"
+        assert ms <= ROUND_TRIP_PERIODS * self.s.period_s * 1e3, (
+            f"{detail}: over {ROUND_TRIP_PERIODS} periods, commands would act too late for force control")
+        return detail
+
     def _connect(self) -> str:
-        assert self.arm is not None
+        assert isinstance(self.arm, TM5ModbusArm)
         self.arm.connect()
         return f"Modbus unit {self.arm.config.unit_id} answers"
 
@@ -149,10 +211,20 @@ class Doctor:
             time.sleep(self.s.period_s)
             last = self.arm.read_state()
             if last.seq != first.seq:
-                rate = (last.seq - first.seq) / max(last.t - first.t, 1e-9)
-                return f"robot counter advancing ({rate:.0f}/s)"
+                # Its rate is the state_rate check's to measure.
+                return f"robot counter advancing ({first.seq} -> {last.seq})"
         raise AssertionError(f"robot counter stuck at {first.seq} for {HEARTBEAT_S:.1f} s: the robot-side "
                              "program is not running")
+
+    def _state_rate(self) -> str:
+        assert self.arm is not None
+        rate, jitter_ms, samples = measure_state_rate(self.arm.read_state, RATE_WINDOW_S,
+                                                      min(0.001, self.s.period_s / 4))
+        need = 1.0 / self.s.period_s
+        detail = (f"state at {rate:.1f} Hz ({samples} samples in {RATE_WINDOW_S:g} s, interval p95 - p50 "
+                  f"{jitter_ms:.1f} ms); loop.period_s {self.s.period_s * 1e3:g} ms needs {need:.1f} Hz")
+        assert rate >= RATE_TOLERANCE * need, detail
+        return detail
 
     def _status(self) -> str:
         assert self.arm is not None
@@ -242,8 +314,45 @@ class Doctor:
         return detail
 
 
+def measure_state_rate(read: Callable[[], Any], window_s: float, poll_s: float) -> tuple[float, float, int]:
+    """(rate in Hz, interval jitter p95 - p50 in ms, samples) of a state stream whose `seq` counts the
+    device's samples: polled for `window_s`, the rate from the counter's advance between its first and last
+    change (a device that sends several samples at once advances it by several)."""
+    last = read().seq
+    changes: list[tuple[float, int]] = []
+    deadline = time.monotonic() + window_s
+    while time.monotonic() < deadline:
+        state = read()
+        if state.seq != last:
+            changes.append((time.monotonic(), state.seq))
+            last = state.seq
+        time.sleep(poll_s)
+    if len(changes) < 2:
+        raise AssertionError(f"the state counter advanced {len(changes)} time(s) in {window_s:g} s: no stream")
+    t = np.array([c[0] for c in changes])
+    seq = np.array([c[1] for c in changes], dtype=float)
+    samples = int(seq[-1] - seq[0])
+    rate = samples / max(float(t[-1] - t[0]), 1e-9)
+    per_sample = np.diff(t) / np.maximum(np.diff(seq), 1.0)
+    jitter_ms = float(np.percentile(per_sample, 95) - np.percentile(per_sample, 50)) * 1e3
+    return rate, jitter_ms, samples
+
+
+def format_table(checks: list[Check]) -> str:
+    """The checks as a plain-text table: name, PASS / FAIL / SKIPPED, what was seen; a failed check's fix
+    on the line below it."""
+    width = max(len(c.name) for c in checks) if checks else 10
+    lines = [f"{'check':<{width}}  {'result':<7}  detail", f"{'-' * width}  {'-' * 7}  {'-' * 40}"]
+    for c in checks:
+        lines.append(f"{c.name:<{width}}  {c.status.upper():<7}  {c.detail}")
+        if c.status == "fail" and c.fix:
+            lines.append(f"{'':<{width}}  {'':<7}  what to do: {c.fix}")
+    return "\n".join(lines)
+
+
 def report(checks: list[Check], cell: str) -> dict[str, Any]:
     """The doctor's summary: passed, the failing checks' names, every check."""
     failed = [c.name for c in checks if c.status == "fail"]
     return {"cell": cell, "passed": not failed, "failed": failed,
-            "checks": [{**asdict(c), "passed": c.passed} for c in checks]}
+            "skipped": [c.name for c in checks if c.status == "skipped"],
+            "checks": [{**asdict(c), "passed": c.status == "pass"} for c in checks]}

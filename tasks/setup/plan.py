@@ -17,6 +17,7 @@ import numpy as np  # noqa: E402
 
 from cell.config import CellConfig  # noqa: E402
 from cell.control.loop import OpenCell  # noqa: E402
+from cell.control.signals import raise_if_interrupted
 from cell.data.recorder import read_log  # noqa: E402
 from cell.model.robot import RobotModel  # noqa: E402
 from cell.planning.planner import PLANNERS, PlannerConfig, PlanningError, TimedTrajectory, ToppraTerms, TorqueFn  # noqa: E402
@@ -149,6 +150,7 @@ def plan_and_validate(
                 and traj.duration > last.traj.duration - 0.5 * pcfg.sample_period_s):
             break  # the last run was within the limits and the correction buys no time: done
         summary = execute(traj, cfg, robot, open_cell)
+        raise_if_interrupted(summary["outcome"])  # Ctrl+C ends `plan`, not just this validation run
         peak = measured_peak(summary.get("run_dir"), robot.n)
         ratio = peak / effort
         ok = summary["outcome"] == "done" and bool(np.all(ratio <= 1.0))

@@ -14,7 +14,7 @@ from cell.planning.planner import TimedTrajectory
 from tasks.base import MachineTask, Trigger
 
 
-class P(enum.Enum):
+class PlayPhase(enum.Enum):
     MOVE_TO_START = "move_to_start"
     SETTLE = "settle"
     PLAY = "play"
@@ -50,11 +50,11 @@ class PlayTask(MachineTask):
         self.dt = dt
         self.cfg = cfg or PlayConfig()
         self.speed = speed_limits * self.cfg.move_speed_fraction
-        super().__init__(P.MOVE_TO_START, [
-            ("arrived_at_start", P.MOVE_TO_START, P.SETTLE),
-            ("settled", P.SETTLE, P.PLAY),
-            ("played", P.PLAY, P.ARRIVE),
-            ("arrived", P.ARRIVE, P.DONE),
+        super().__init__(PlayPhase.MOVE_TO_START, [
+            ("arrived_at_start", PlayPhase.MOVE_TO_START, PlayPhase.SETTLE),
+            ("settled", PlayPhase.SETTLE, PlayPhase.PLAY),
+            ("played", PlayPhase.PLAY, PlayPhase.ARRIVE),
+            ("arrived", PlayPhase.ARRIVE, PlayPhase.DONE),
         ])
         self._move: JointMove | None = None
         self._t_play = 0.0

@@ -13,6 +13,7 @@ from cell.control.loop import Command, Observation
 from cell.control.trajectory import JointMove
 from cell.model.robot import RobotModel
 from cell.sensing.tool_gravity import fit, gravity_direction, identification_postures, save
+from tasks.runner import run_task
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +78,6 @@ class ToolGravityTask:
 def identify_tool_gravity(cfg: CellConfig, tool: str, robot: RobotModel, opener: Any, out_dir: Path) -> dict[str, Any]:
     """Run the identification on a cell opened by `opener()` (free space, the tool mounted, the F/T sensor as
     its force source), fit and save `tool_gravity.json` in `out_dir`; returns the fit's summary."""
-    from tasks.runner import run_task
 
     postures = identification_postures(robot, np.asarray(cfg.robot.home, float))
     task = ToolGravityTask(postures, robot.limits.velocity * SPEED_FRACTION, cfg.loop.period_s)

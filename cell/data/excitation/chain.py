@@ -8,11 +8,13 @@ import logging
 
 import numpy as np
 
+from cell.collision.geometry import CollisionChecker
 from cell.config import CellConfig
+from cell.control.trajectory import quintic_samples
 from cell.data.excitation.config import ExcitationConfig
-from cell.data.excitation.limits import CollisionChecker, Workspace, rad_ranges
-from cell.data.excitation.moves import path_clear, quintic_duration, quintic_samples
-from cell.data.excitation.plan import Plan, Segment
+from cell.data.excitation.limits import Workspace, excitation_checker, rad_ranges
+from cell.data.excitation.motion import Motion, Segment
+from cell.data.excitation.moves import path_clear, quintic_duration
 from cell.model.robot import RobotModel
 
 log = logging.getLogger(__name__)
@@ -54,14 +56,14 @@ def eulerian_chain(adj: dict[int, list[int]], start: int) -> list[int]:
 
 
 def paper_chain(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: float,
-                max_samples: int | None = None, traj_base: int = 0, segment_base: int = 0) -> Plan:
+                max_samples: int | None = None, traj_base: int = 0, segment_base: int = 0) -> Motion:
     """The paper's generator: digitise, drop colliding configurations, chain every ordered pair of the
     rest into one continuous trajectory, and run it at V speeds (one trajectory id per speed).
 
     M configurations are drawn (seeded) from the free ones: `max_configs`, or, with `max_samples`,
     as many as give about that many samples (P(M,2) moves x V speeds); the last pass is cut there.
     """
-    cc = CollisionChecker(robot, cfg, ex)
+    cc = excitation_checker(robot, cfg, ex)
     ws = Workspace(robot, cfg, ex)
     free, info = free_configurations(digitised_configurations(robot, ex), cc, ws)
     if len(free) < 2:
@@ -84,7 +86,7 @@ def paper_chain(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: fl
                 speeds=list(ex.speeds), moves=len(segments))
     log.info("paper chain: %d configurations chained (of %d free, %d digitised), %d ordered pairs, %d moves, %.0f s",
              chained, info["free"], info["configurations"], pairs, len(segments), total * dt)
-    return Plan(segments, dt, info)
+    return Motion(segments, dt, info)
 
 
 def _chain(configs: np.ndarray, cc: CollisionChecker, ws: Workspace, ex: ExcitationConfig, dt: float,

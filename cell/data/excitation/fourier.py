@@ -8,10 +8,12 @@ import logging
 import numpy as np
 
 from cell.config import CellConfig
+from cell.control.trajectory import quintic_blend
 from cell.data.excitation.config import ExcitationConfig
-from cell.data.excitation.limits import CollisionChecker, Workspace, rad_ranges, trajectory_ok
+from cell.data.excitation.limits import Workspace, excitation_checker, rad_ranges, trajectory_ok
+from cell.data.excitation.motion import Motion, Segment
 from cell.data.excitation.moves import transfer
-from cell.data.excitation.plan import Plan, Segment
+from cell.model.dynamics.physics import base_parameters, full_regressor
 from cell.model.robot import RobotModel
 
 log = logging.getLogger(__name__)
@@ -28,7 +30,7 @@ def fourier_trajectory(coef_a: np.ndarray, coef_b: np.ndarray, q0: np.ndarray, w
     f = f - f[0]  # start exactly at q0
     T = t[-1]
     u = np.clip(np.minimum(t, T - t) / ramp_s, 0.0, 1.0)
-    env = u**3 * (10 - 15 * u + 6 * u**2)
+    env = quintic_blend(u)
     q = q0 + env[:, None] * f
     dt = t[1] - t[0]
     dq = np.gradient(q, dt, axis=0)
@@ -38,16 +40,14 @@ def fourier_trajectory(coef_a: np.ndarray, coef_b: np.ndarray, q0: np.ndarray, w
 
 def fourier_excitation(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: float,
                        traj_base: int = 0, segment_base: int = 0, centres: np.ndarray | None = None,
-                       speed_fraction: float = 1.0) -> Plan:
+                       speed_fraction: float = 1.0) -> Motion:
     """Identification-grade excitation: per trajectory, random Fourier coefficients scaled into the
     position / speed / acceleration limits; among the collision-free candidates the one whose base
     regressor (column-scaled) has the lowest condition number is kept.  Trajectories are joined by
     quintic moves (which are segments too).  `speed_fraction` < 1 caps the joint speeds at that
     fraction of the limits (slow, small-amplitude excitation: the friction's low-speed regime)."""
-    from cell.model.dynamics.physics import base_parameters, full_regressor
-
     fc = ex.fourier
-    cc = CollisionChecker(robot, cfg, ex)
+    cc = excitation_checker(robot, cfg, ex)
     ws = Workspace(robot, cfg, ex)
     lo, hi = rad_ranges(ex.ranges_deg, robot)
     n = robot.n
@@ -130,5 +130,5 @@ def fourier_excitation(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig,
             segments.append(Segment(body[c0:c0 + per], traj_base + k, seg_id, 1.0, "fourier"))
             seg_id += 1
         prev = q[-1]
-    return Plan(segments, dt, {"trajectories": len(conds), "condition_numbers": [round(c, 1) for c in conds],
+    return Motion(segments, dt, {"trajectories": len(conds), "condition_numbers": [round(c, 1) for c in conds],
                                "duration_s": round(duration, 2)})

@@ -1,18 +1,17 @@
-"""Point-to-point moves: quintic rest-to-rest timing within the limits, collision-free transfers between plans,
-joined plans, and random moves (the test family)."""
+"""Point-to-point moves: quintic rest-to-rest timing within the limits, collision-free transfers between
+motions, joined motions, and random moves (the test family)."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from cell.collision.geometry import CollisionChecker
 from cell.config import CellConfig
+from cell.control.trajectory import QUINTIC_PEAK_ACCEL, QUINTIC_PEAK_SPEED, quintic_samples
 from cell.data.excitation.config import ExcitationConfig
-from cell.data.excitation.limits import CollisionChecker, Workspace, rad_ranges
-from cell.data.excitation.plan import Plan, Segment
+from cell.data.excitation.limits import Workspace, excitation_checker, rad_ranges
+from cell.data.excitation.motion import Motion, Segment
 from cell.model.robot import RobotModel
-
-QUINTIC_PEAK_SPEED = 1.875  # max of d/ds of 10s^3 - 15s^4 + 6s^5
-QUINTIC_PEAK_ACCEL = 5.7735  # max of d2/ds2 of the same
 
 
 def _line(q0: np.ndarray, q1: np.ndarray, step: float) -> np.ndarray:
@@ -37,40 +36,28 @@ def quintic_duration(q0: np.ndarray, q1: np.ndarray, ws: Workspace, speed: float
     return max(t_v, t_a, t_c, 0.3)
 
 
-def quintic_samples(q0: np.ndarray, q1: np.ndarray, duration: float, dt: float, rest_s: float = 0.0) -> np.ndarray:
-    k = int(np.ceil(duration / dt))
-    s = np.minimum(np.arange(1, k + 1) * dt / duration, 1.0)[:, None]
-    blend = s**3 * (10 - 15 * s + 6 * s**2)
-    q = q0 + (q1 - q0) * blend
-    hold = int(round(rest_s / dt))
-    if hold:
-        q = np.vstack([q, np.repeat(q1[None, :], hold, axis=0)])
-    return q
-
-
-
-def join_plans(plans: list[Plan], robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig) -> Plan:
-    """Concatenate plans, inserting a quintic move wherever one ends away from where the next starts."""
-    if not plans:
+def join_motions(motions: list[Motion], robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig) -> Motion:
+    """Concatenate motions, inserting a quintic move wherever one ends away from where the next starts."""
+    if not motions:
         raise ValueError("nothing to join")
     ws = Workspace(robot, cfg, ex)
-    dt = plans[0].dt
+    dt = motions[0].dt
     segments: list[Segment] = []
-    for p in plans:
+    for p in motions:
         if segments and np.max(np.abs(segments[-1].q[-1] - p.start)) > 1e-9:
             a, b = segments[-1].q[-1], p.start
             T = quintic_duration(a, b, ws, 0.7, ex.path_step_rad)
             segments.append(Segment(quintic_samples(a, b, T, dt, 0.2), -1, -1, 0.7, "transfer"))
         segments.extend(p.segments)
-    return Plan(segments, dt, {"parts": [p.info for p in plans]})
+    return Motion(segments, dt, {"parts": [p.info for p in motions]})
 
 
 def transfer(q_from: np.ndarray, q_to: np.ndarray, robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig,
              dt: float, speed: float = 0.5, tries: int = 400, seed: int = 0) -> list[Segment]:
-    """Collision-free moves (traj -1) from one plan's end to the next one's start: straight when the
+    """Collision-free moves (traj -1) from one motion's end to the next one's start: straight when the
     straight joint path is clear, else through the home posture (retract, turn joint 1, extend),
     else through one or two random free via configurations (a small randomised search)."""
-    cc = CollisionChecker(robot, cfg, ex)
+    cc = excitation_checker(robot, cfg, ex)
     ws = Workspace(robot, cfg, ex)
     a, b = np.asarray(q_from, float), np.asarray(q_to, float)
     if np.max(np.abs(a - b)) < 1e-9:
@@ -114,11 +101,11 @@ def transfer(q_from: np.ndarray, q_to: np.ndarray, robot: RobotModel, cfg: CellC
 
 def random_moves(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: float, trajectories: int,
                  moves: int, speeds: list[float], repeats: int = 1, seed: int = 1,
-                 traj_base: int = 0, segment_base: int = 0) -> Plan:
+                 traj_base: int = 0, segment_base: int = 0) -> Motion:
     """Random point-to-point moves (the test family): random collision-free configurations in
     `test_ranges_deg`, chained; trajectory i runs at speeds[i % len(speeds)]; each one is played
     `repeats` times (there and back again, so repeats stay continuous)."""
-    cc = CollisionChecker(robot, cfg, ex)
+    cc = excitation_checker(robot, cfg, ex)
     ws = Workspace(robot, cfg, ex)
     lo, hi = rad_ranges(ex.test_ranges_deg, robot)
     rng = np.random.default_rng(seed)
@@ -140,5 +127,5 @@ def random_moves(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: f
                 segments.append(Segment(quintic_samples(a, b, T, dt, 0.25), tid, seg_id, v, "random"))
                 seg_id += 1
         q = waypoints[-1] if repeats % 2 == 1 else waypoints[0]
-    return Plan(segments, dt, {"trajectories": trajectories * repeats, "moves_per_trajectory": moves,
+    return Motion(segments, dt, {"trajectories": trajectories * repeats, "moves_per_trajectory": moves,
                                "speeds": list(speeds), "repeats": repeats})

@@ -8,9 +8,9 @@ import numpy as np
 
 from cell.config import CellConfig
 from cell.data.excitation.config import ExcitationConfig
-from cell.data.excitation.limits import CollisionChecker, Workspace, trajectory_ok
+from cell.data.excitation.limits import Workspace, excitation_checker, trajectory_ok
+from cell.data.excitation.motion import Motion, Segment
 from cell.data.excitation.moves import transfer
-from cell.data.excitation.plan import Plan, Segment
 from cell.model.robot import RobotModel
 
 
@@ -28,7 +28,7 @@ class SweepConfig:
 
 def sweep_excitation(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: float, samples: int,
                      centre: np.ndarray, start: np.ndarray | None = None, traj_base: int = 0,
-                     segment_base: int = 0, sc: SweepConfig | None = None) -> Plan:
+                     segment_base: int = 0, sc: SweepConfig | None = None) -> Motion:
     """Slow sweeps around `centre` (a tool's working posture): every joint moves at its own constant
     speed (log-uniform in `speed_range`, random sign) for about a second, then blends into the next.
 
@@ -37,11 +37,11 @@ def sweep_excitation(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, d
     crosses those speeds at its turning points, under acceleration, and the friction's position ripple
     and load differ from posture to posture.  With these sweeps around the peg's task start (lifted
     clear of the table, as `prepare` places them) the virtual sensor's My error over 50 bench
-    insertions fell from 0.28 to 0.21 N·m, its Fz error from 2.06 to 1.49 N.  The plan starts with a
+    insertions fell from 0.28 to 0.21 N·m, its Fz error from 2.06 to 1.49 N.  The motion starts with a
     collision-free move from `start` (default: home) to `centre`; a block that would leave the limits
     or the workspace, or collide, is drawn again."""
     sc = sc or SweepConfig()
-    cc = CollisionChecker(robot, cfg, ex)
+    cc = excitation_checker(robot, cfg, ex)
     ws = Workspace(robot, cfg, ex)
     n = robot.n
     c = np.asarray(centre, float)
@@ -87,5 +87,5 @@ def sweep_excitation(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, d
             seg_id += 1
         q = parts[-1][-1].copy()
         blocks += 1
-    return Plan(segments, dt, {"blocks": blocks, "centre": np.round(c, 4).tolist(),
+    return Motion(segments, dt, {"blocks": blocks, "centre": np.round(c, 4).tolist(),
                                "speed_range": list(sc.speed_range), "box_rad": sc.box_rad})

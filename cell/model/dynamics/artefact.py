@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 import re
 from pathlib import Path
 from typing import Any
@@ -13,11 +12,13 @@ from typing import Any
 import numpy as np
 import xgboost as xgb
 
+from cell.data.atomic import atomic_path, save_atomic, write_atomic
 from cell.model.dynamics.base import ModelMeta
 from cell.model.dynamics.features import FeatureSpec
 from cell.model.dynamics.learned import PHYSICS_PART, Forest, LearnedModel, XGBParams
 from cell.model.dynamics.nets import NetLearner, NetParams, flatten_nets, unflatten_nets
-from cell.model.dynamics.physics import P1Model, P2Model, P2Params, urdf_sha256
+from cell.model.dynamics.physics import P1Model
+from cell.model.dynamics.rigid_body import P2Model, P2Params, urdf_sha256
 from cell.model.dynamics.uncertainty import Coverage
 from cell.model.robot import RobotModel
 from drivers.configio import load_dataclass, read_versioned_json
@@ -49,26 +50,21 @@ def save_model(model: AnyModel, path: Path) -> Path:
         if isinstance(model.forest, NetLearner):
             doc["learner"] = model.forest.learner
             doc["net"] = model.forest.params.to_dict()
-            tmp = path / f".tmp-{NETS_FILE}"
-            with tmp.open("wb") as fh:
+            with atomic_path(path / NETS_FILE) as tmp, tmp.open("wb") as fh:
                 np.savez(fh, allow_pickle=False, **flatten_nets(model.forest.nets))
-            os.replace(tmp, path / NETS_FILE)
             doc["nets"] = NETS_FILE
         else:
             doc["xgboost"] = model.params.to_dict()
             boosters = {}
             for j, bst in sorted(model.forest.boosters.items()):
                 name = f"booster_j{j + 1}.ubj"
-                tmp = path / f".tmp-{name}"  # keeps the .ubj extension: it selects the format
-                bst.save_model(str(tmp))
-                os.replace(tmp, path / name)
+                # The temporary file keeps the .ubj extension: it selects the format.
+                save_atomic(path / name, bst.save_model)
                 boosters[str(j + 1)] = name
             doc["boosters"] = boosters
         if model.coverage is not None:
             doc["coverage"] = model.coverage.to_dict()
-    tmp = path / ".model.json.tmp"
-    tmp.write_text(json.dumps(doc, indent=1))
-    os.replace(tmp, path / "model.json")
+    write_atomic(path / "model.json", json.dumps(doc, indent=1))
     return path
 
 
@@ -94,7 +90,17 @@ def check_robot(meta: ModelMeta, robot: RobotModel, where: str) -> None:
 
 
 def load_model(path: Path, robot: RobotModel) -> AnyModel:
-    path = Path(path)
+    """A saved model artefact; any damage to it (truncated, missing or wrongly typed entries) is a one-line
+    DataError naming the file, never a traceback."""
+    try:
+        return _load_model(Path(path), robot)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, RecursionError) as exc:
+        doc_path = Path(path) / "model.json" if Path(path).is_dir() else Path(path)
+        detail = "nested too deeply" if isinstance(exc, RecursionError) else f"{type(exc).__name__}: {exc}"
+        raise DataError(f"{doc_path}: damaged model file ({detail})") from None
+
+
+def _load_model(path: Path, robot: RobotModel) -> AnyModel:
     doc_path = path / "model.json" if path.is_dir() else path
     doc = read_versioned_json(doc_path, FORMAT, FORMAT_VERSION, "model file",
                               f"{path}: no model.json (not a saved model)")
@@ -131,7 +137,12 @@ def load_model(path: Path, robot: RobotModel) -> AnyModel:
         if not file.exists():
             raise DataError(f"{doc_path}: booster file {file} for joint {key} is missing")
         bst = xgb.Booster()
-        bst.load_model(str(file))
+        try:
+            bst.load_model(str(file))
+        except xgb.core.XGBoostError as exc:  # truncated or damaged: XGBoost's message is a multi-line trace
+            first = (str(exc).splitlines() or ["unreadable"])[0]
+            first = re.sub(r"^\[[^]]*\]\s*\S+:\d+:\s*", "", first)  # XGBoost's time and source line
+            raise DataError(f"{file}: not a readable XGBoost booster ({first})") from None
         bst.set_param({"nthread": params.nthread})
         boosters[int(key) - 1] = bst
     forest = Forest(spec, robot.n, boosters)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
@@ -12,10 +11,15 @@ from threadpoolctl import threadpool_limits
 
 from cell.model.dynamics.consistency import is_consistent, params_from_theta, theta_from_params
 from cell.model.dynamics.friction import extra_columns, term_names
-
-if TYPE_CHECKING:
-    from cell.model.dynamics.physics import IdentificationConfig, P2Model
-    from cell.model.robot import RobotModel
+from cell.model.dynamics.rigid_body import (
+    IdentificationConfig,
+    P2Model,
+    P2Params,
+    mass_matrix_positive,
+    nominal_parameters,
+    robot_meta,
+)
+from cell.model.robot import RobotModel
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +72,6 @@ def _identify(robot: RobotModel, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray,
     joint's losses: min |W (Y pi + F phi - tau)|^2 + |(pi - pi_nom) / scale|^2 + |phi / loss_prior|^2,
     with pi = pi(theta) in log-Cholesky coordinates and B_m, C_m, f_c >= 0 (`nonneg_losses`).
     W weighs each joint by its residual level (a first, linear fit), as `identify_p2` does."""
-    from cell.model.dynamics.physics import P2Model, P2Params, _mass_matrix_positive, nominal_parameters, robot_meta
-
     model = robot.model
     n = model.nv
     N = q.shape[0]
@@ -149,7 +151,7 @@ def _identify(robot: RobotModel, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray,
         "residual_std_per_joint_nm": np.round(sigma, 4).tolist(),
         "masses_kg": np.round(inertial[:, 0], 4).tolist(),
         "physically_consistent": all(consistent),
-        "mass_matrix_positive": _mass_matrix_positive(robot, inertial, losses[:, 0], q[rows]),
+        "mass_matrix_positive": mass_matrix_positive(robot, inertial, losses[:, 0], q[rows]),
         "losses": {name: np.round(losses[:, k], 4).tolist()
                    for k, name in enumerate(BASIC_LOSSES + tuple(term_names(terms)))},
         "solver": report_steps,

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from drivers.configio import require
+
 # Extra loss terms a P2 may carry (each a per-joint coefficient, linear in the torque):
 # * offset: a constant torque (asymmetric Coulomb friction: f_c+ != f_c- shows as f_c sign + offset);
 # * viscous_asym: |q'| (viscous friction that differs between the two directions);
@@ -14,8 +16,6 @@ STRIBECK_SPEEDS = (0.02, 0.1)  # rad/s
 
 
 def validate_terms(terms: tuple[str, ...] | list[str], where: str) -> None:
-    from drivers.configio import require
-
     for t in terms:
         require(t in EXTRA_TERMS, where, f"unknown loss term {t!r} (known: {', '.join(EXTRA_TERMS)})")
     require(len(set(terms)) == len(terms), where, "lists a loss term twice")

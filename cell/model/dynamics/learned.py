@@ -12,11 +12,11 @@ from typing import Any, Literal
 import numpy as np
 import xgboost as xgb
 
-from cell.data.samples import Samples
+from cell.data.samples import Samples, holdout_segments
 from cell.model.dynamics.base import ModelMeta
 from cell.model.dynamics.features import FeatureSpec, Group, group_matrices, groups
 from cell.model.dynamics.nets import NetLearner, NetParams
-from cell.model.dynamics.physics import P2Model, robot_meta
+from cell.model.dynamics.rigid_body import P2Model, robot_meta
 from cell.model.dynamics.uncertainty import Coverage, CoverageConfig
 from cell.model.robot import RobotModel
 from drivers.configio import join, require
@@ -86,7 +86,7 @@ class Forest:
         """target: (N, n) torque (or residual) per joint; only the learned joints are used.
         physics: (N, n) torque the 'load' inputs are made of (see `physics_part`).
         `report(k, RMSE on the held-out segments)` after the k-th joint's booster (for pruning a search)."""
-        train_rows, val_rows = _split_segments(s, params.validation_fraction, params.seed)
+        train_rows, val_rows = holdout_segments(s, params.validation_fraction, params.seed)
         t0 = time.perf_counter()
         for _, g, X in group_matrices(self.spec, self.groups, s.q, s.dq, s.ddq, s.starts, physics):
             Xtr = X[train_rows] if val_rows is not None else X
@@ -125,20 +125,6 @@ class Forest:
 
     def trees(self) -> int:
         return sum(b.num_boosted_rounds() for b in self.boosters.values())
-
-
-def _split_segments(s: Samples, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """Hold out whole segments (moves) for early stopping: neighbouring rows are nearly identical,
-    so a row-wise split would validate on the training data."""
-    if fraction <= 0:
-        return np.arange(len(s)), None
-    ids = np.unique(s.segment)
-    if len(ids) < 5:
-        return np.arange(len(s)), None
-    rng = np.random.default_rng(seed)
-    val_ids = rng.choice(ids, max(1, int(round(fraction * len(ids)))), replace=False)
-    val = np.isin(s.segment, val_ids)
-    return np.flatnonzero(~val), np.flatnonzero(val)
 
 
 @dataclass
@@ -248,7 +234,7 @@ def fit_learned(
         forest = Forest(spec, robot.n).fit(samples, target, params, load, report)
         extra = {"xgboost": params.to_dict(), "trees": forest.trees()}
     meta = robot_meta(
-        robot, kind, features={**spec.to_dict(), "derivatives": samples.mode},
+        robot, kind, features={**spec.to_dict(), "derivatives": samples.mode, "sample_period_s": samples.period_s},
         training_data_sha256=training_data_sha256, training_samples=len(samples),
         extra={**extra, "fit_seconds": forest.fit_seconds, "physics": PHYSICS_PART[kind]},
     )
@@ -262,7 +248,7 @@ def fit_learned(
         outs = forest.outputs
         resid_h = target.copy()
         resid_h[:, outs] -= learned[:, outs]
-        _, val_rows = _split_segments(samples, params.validation_fraction, params.seed)
+        _, val_rows = holdout_segments(samples, params.validation_fraction, params.seed)
         cov = Coverage.fit(outs, samples.q, samples.dq, samples.ddq, resid_h, target, np.abs(p2.params.f_c),
                            cc.bins, cc.min_count, cc.stick_speed, val_rows, blend=kind == "H1")
         meta.extra["coverage"] = {"min_count": cc.min_count, "stick_speed": cc.stick_speed, "bins": cc.bins}

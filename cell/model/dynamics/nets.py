@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import os
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -10,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from cell.data.samples import Samples
+from cell.data.samples import Samples, holdout_segments
 from cell.model.dynamics.features import FeatureSpec, Group, group_matrices, groups
 from drivers.configio import join, require
 
@@ -71,7 +73,7 @@ def _sigmoid(v: np.ndarray) -> np.ndarray:
 
 
 def forward_np(p: dict[str, np.ndarray], x: np.ndarray, params: NetParams, window: int, width: int) -> np.ndarray:
-    """The network on standardised inputs (N, d) in numpy, float32: the served path (same maths as `_forward`)."""
+    """The network on standardised inputs (N, d) in numpy, float32: the served path (same maths as `forward_jax`)."""
     act = _act(params.activation, np)
     h = x
     dense_from = 0
@@ -94,7 +96,7 @@ def forward_np(p: dict[str, np.ndarray], x: np.ndarray, params: NetParams, windo
     return out
 
 
-def _forward(p: dict[str, Any], x: Any, params: NetParams, window: int, width: int, key: Any, train: bool) -> Any:
+def forward_jax(p: dict[str, Any], x: Any, params: NetParams, window: int, width: int, key: Any, train: bool) -> Any:
     """`forward_np` in JAX, with dropout when training (inverted: nothing to rescale when serving)."""
     import jax
     import jax.numpy as jnp
@@ -179,10 +181,8 @@ class GroupNet:
 
 def _config_jax(nthread: int) -> None:
     """JAX on the CPU with the thread count asked for; only effective before JAX's first import."""
-    import os
-
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
-    if "jax" not in __import__("sys").modules:
+    if "jax" not in sys.modules:
         flags = os.environ.get("XLA_FLAGS", "")
         if "intra_op_parallelism_threads" not in flags:
             os.environ["XLA_FLAGS"] = (f"{flags} --xla_cpu_multi_thread_eigen={'true' if nthread > 1 else 'false'} "
@@ -207,7 +207,7 @@ def _compiled(params: NetParams, window: int, width: int) -> tuple[Any, Any, Any
     opt = optax.adamw(params.learning_rate, weight_decay=params.weight_decay)
 
     def loss(p: Any, xb: Any, yb: Any, k: Any) -> Any:
-        return jnp.mean((_forward(p, xb, params, window, width, k, True) - yb) ** 2)
+        return jnp.mean((forward_jax(p, xb, params, window, width, k, True) - yb) ** 2)
 
     @jax.jit
     def epoch(p: Any, s: Any, xs: Any, ys: Any, k: Any) -> tuple[Any, Any]:
@@ -223,7 +223,7 @@ def _compiled(params: NetParams, window: int, width: int) -> tuple[Any, Any, Any
 
     @jax.jit
     def mse(p: Any, x: Any, y: Any) -> Any:
-        return jnp.mean((_forward(p, x, params, window, width, jax.random.PRNGKey(0), False) - y) ** 2, axis=0)
+        return jnp.mean((forward_jax(p, x, params, window, width, jax.random.PRNGKey(0), False) - y) ** 2, axis=0)
 
     _COMPILED[key] = (opt, epoch, mse)
     return _COMPILED[key]
@@ -300,11 +300,9 @@ class NetLearner:
             report: Reporter | None = None) -> NetLearner:
         """target: (N, n) torque (or residual); physics: the torque the 'load' inputs are made of.
         `report(step, validation RMSE)` is called after every epoch of every group (for pruning)."""
-        from cell.model.dynamics.learned import _split_segments
-
         params.validate("net")
         self.params = params
-        tr, va = _split_segments(s, params.validation_fraction, params.seed)
+        tr, va = holdout_segments(s, params.validation_fraction, params.seed)
         t0 = time.perf_counter()
         step = 0
         for gi, g, X in group_matrices(self.spec, self.groups, s.q, s.dq, s.ddq, s.starts, physics):

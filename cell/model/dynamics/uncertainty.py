@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from drivers.configio import join, require
+
 SPEED_EDGES = np.array([0.0, 0.002, 0.01, 0.03, 0.1, 0.3, 1.0, np.inf])  # |q'| bins [rad/s] of the levels
 
 
@@ -178,8 +180,6 @@ class CoverageConfig:
     bins: int = 10  # grid cells per axis of (q_j, q'_j, q''_j)
 
     def validate(self, where: str) -> None:
-        from drivers.configio import join, require
-
         require(0 <= self.min_count <= 1e6, join(where, "min_count"), f"must lie in [0, 1e6], got {self.min_count}")
         require(0 <= self.stick_speed <= 1.0, join(where, "stick_speed"),
                 f"must lie in [0, 1] rad/s, got {self.stick_speed}")

@@ -1,4 +1,4 @@
-"""What the motion generators return: a `Plan` of joint-position samples at the control period, cut into
+"""What the motion generators return: a `Motion`, joint-position samples at the control period, cut into
 segments (moves) and trajectories."""
 
 from __future__ import annotations
@@ -21,7 +21,9 @@ class Segment:
 
 
 @dataclass
-class Plan:
+class Motion:
+    """An excitation motion: its moves in the order they run, the control period [s], and how it was made."""
+
     segments: list[Segment]
     dt: float
     info: dict = field(default_factory=dict)
@@ -36,7 +38,7 @@ class Plan:
 
     @property
     def labelled_samples(self) -> int:
-        """Samples that belong to a trajectory (transfers between plans, traj -1, do not)."""
+        """Samples that belong to a trajectory (transfers between motions, traj -1, do not)."""
         return sum(len(s.q) for s in self.segments if s.traj >= 0)
 
     @property

@@ -1,0 +1,214 @@
+"""Sensorless hand guiding: admittance on the virtual wrench.  The operator's force on the tool (the force
+source's wrench, turned around and into the base frame) drives a virtual mass-damper per axis,
+M dv/dt + D v = F - deadband, whose velocity moves the TCP reference (orientation held).  Speed and a
+workspace box bound it; on release (the force back within the deadband) the reference brakes to rest; a
+force above `max_force_n` stops the arm (the task fails, the loop stops it).  Taught poses: each place the
+tool comes to rest after it was moved at least `teach_min_move_m` (for `--teach`)."""
+
+from __future__ import annotations
+
+import enum
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from cell.control.loop import Command, Observation
+from cell.control.trajectory import JointMove, tool_down_pose
+from cell.model.robot import RobotModel
+from drivers.configio import load_dataclass, require
+from tasks.base import MachineTask, Trigger
+
+log = logging.getLogger(__name__)
+
+
+class GuideState(enum.Enum):
+    MOVE_TO_START = "move_to_start"
+    TARE = "tare"
+    GUIDE = "guide"
+    DONE = "done"
+    FAILED = "failed"
+
+
+@dataclass
+class HandGuideConfig:
+    """`tasks.hand_guide` in the cell config (every field has this default)."""
+
+    mass_kg: list[float] = field(default_factory=lambda: [4.0, 4.0, 4.0])  # virtual mass per base axis
+    damping_ns_per_m: list[float] = field(default_factory=lambda: [60.0, 60.0, 60.0])  # virtual damping
+    deadband_n: float = 3.0  # |F| under this moves nothing: above the virtual sensor's error at rest
+    max_speed_mps: float = 0.15
+    brake_mps2: float = 1.0  # deceleration to rest on release
+    # The admittance's acceleration cap: the virtual sensor reads a fast arm's inertial torques as force
+    # (its model's error grows with acceleration), which a light virtual mass would then chase.
+    max_accel_mps2: float = 5.0
+    max_force_n: float = 30.0  # a guiding force above this stops the arm
+    workspace_min: list[float] = field(default_factory=lambda: [0.2, -0.45, 0.1])
+    workspace_max: list[float] = field(default_factory=lambda: [0.65, 0.35, 0.5])
+    start_xyz: list[float] = field(default_factory=lambda: [0.40, -0.15, 0.25])  # tool down here first
+    move_speed_fraction: float = 0.15  # of the joint speed limits, for the move to the start
+    tare_time_s: float = 0.5  # rest, then zero the force source: nobody touches the tool then
+    duration_s: float = 600.0  # guiding ends (done) after this
+    teach_rest_s: float = 0.8  # a taught pose: at rest this long ...
+    teach_rest_speed_mps: float = 0.003  # ... (slower than this) ...
+    teach_min_move_m: float = 0.03  # ... and this far from the last taught pose
+
+    def validate(self, where: str) -> None:
+        for name in ("mass_kg", "damping_ns_per_m", "workspace_min", "workspace_max"):
+            require(len(getattr(self, name)) == 3, f"{where}.{name}", "must have 3 values (x, y, z)")
+        require(len(self.start_xyz) == 3, f"{where}.start_xyz", "must be [x, y, z] in m")
+        require(0 < self.move_speed_fraction <= 0.5, f"{where}.move_speed_fraction", "must lie in (0, 0.5]")
+        require(all(m > 0 for m in self.mass_kg), f"{where}.mass_kg", "must be > 0 kg")
+        require(all(d > 0 for d in self.damping_ns_per_m), f"{where}.damping_ns_per_m", "must be > 0 N s/m")
+        require(0 < self.deadband_n < self.max_force_n, f"{where}.deadband_n", "must lie in (0, max_force_n)")
+        require(0 < self.max_speed_mps <= 0.25, f"{where}.max_speed_mps", "must lie in (0, 0.25] m/s")
+        require(self.brake_mps2 > 0 and self.max_accel_mps2 > 0, f"{where}.brake_mps2",
+                "and max_accel_mps2 must be > 0 m/s^2")
+        require(all(lo < hi for lo, hi in zip(self.workspace_min, self.workspace_max, strict=True)),
+                f"{where}.workspace_min", "must be below workspace_max on every axis")
+        for name in ("tare_time_s", "duration_s", "teach_rest_s", "teach_rest_speed_mps", "teach_min_move_m"):
+            require(getattr(self, name) > 0, f"{where}.{name}", "must be > 0")
+
+
+def load_hand_guide_config(raw: dict[str, Any] | None, where: str) -> HandGuideConfig:
+    return load_dataclass(HandGuideConfig, raw or {}, where)
+
+
+class HandGuideTask(MachineTask):
+    name = "hand-guide"
+    regulated_states = ("guide",)
+    arrived: Trigger
+    tared: Trigger
+    finished: Trigger
+
+    def __init__(self, cfg: HandGuideConfig, robot: RobotModel, dt: float, q_home: np.ndarray) -> None:
+        self.cfg = cfg
+        self.robot = robot
+        self.dt = dt
+        super().__init__(GuideState.MOVE_TO_START, [
+            ("arrived", GuideState.MOVE_TO_START, GuideState.TARE),
+            ("tared", GuideState.TARE, GuideState.GUIDE),
+            ("finished", GuideState.GUIDE, GuideState.DONE),
+        ])
+        self.mass = np.asarray(cfg.mass_kg, float)
+        self.damping = np.asarray(cfg.damping_ns_per_m, float)
+        self.lo, self.hi = np.asarray(cfg.workspace_min, float), np.asarray(cfg.workspace_max, float)
+        self.ref: Any = None
+        self.v = np.zeros(3)
+        self.peak_force = 0.0
+        self.taught: list[list[float]] = []  # taught TCP positions [m]
+        self._rest_t = 0.0
+        self._moved_since_taught = False
+        self.stop_force_n: float | None = None
+        start = tool_down_pose(np.asarray(cfg.start_xyz, float))
+        q_start, ok = robot.ik(start, q_home)
+        if not ok:
+            raise ValueError(f"hand-guide start {cfg.start_xyz} is not reachable")
+        self.q_start = q_start
+        self.move: JointMove | None = None
+
+    def step(self, obs: Observation) -> Command:
+        rebias = False
+        f_hand = np.full(3, np.nan)
+        if self.state == GuideState.MOVE_TO_START:
+            if self.move is None:
+                speed = self.robot.limits.velocity * self.cfg.move_speed_fraction
+                self.move = JointMove(obs.q_cmd, self.q_start, speed)
+            q = self.move.at(self.t_state)
+            if self.t_state >= self.move.duration:
+                self.arrived()
+            self.t_state += self.dt
+            t = self.robot.tcp_pose(q).translation
+            return Command(q=q, log=self._row(t, f_hand))
+        if self.ref is None:
+            self.ref = self.robot.tcp_pose(self.q_start)
+            self._last_taught = self.ref.translation.copy()
+        if self.state == GuideState.TARE:
+            if self.t_state + self.dt >= self.cfg.tare_time_s:
+                self.tared()
+                rebias = True
+        elif self.state == GuideState.GUIDE:
+            f_hand = self._guide(obs)
+            if self.t_state >= self.cfg.duration_s:
+                self.finished()
+        self.t_state += self.dt
+        q, _ = self.robot.ik(self.ref, obs.q_cmd, iters=3, tol=1e-7)
+        return Command(q=q, rebias_force=rebias, log=self._row(self.ref.translation, f_hand))
+
+    def _row(self, t: np.ndarray, f_hand: np.ndarray) -> dict[str, float | str]:
+        return {"ref_x": float(t[0]), "ref_y": float(t[1]), "ref_z": float(t[2]), "fz_setpoint": 0.0,
+                "hand_fx": float(f_hand[0]), "hand_fy": float(f_hand[1]), "hand_fz": float(f_hand[2]),
+                "v_x": float(self.v[0]), "v_y": float(self.v[1]), "v_z": float(self.v[2])}
+
+    def _guide(self, obs: Observation) -> np.ndarray:
+        c = self.cfg
+        R = self.robot.tcp_pose(np.asarray(obs.state.q, float)).rotation
+        # The tool exerts w on the hand (cell convention): the hand pushes the tool with -w.
+        f = -(R @ np.asarray(obs.wrench.force, float))
+        if not np.all(np.isfinite(f)):
+            f = np.zeros(3)  # a missing reading: brake as on release (the safety monitor counts them)
+        norm = float(np.linalg.norm(f))
+        self.peak_force = max(self.peak_force, norm)
+        if norm > c.max_force_n:
+            self.stop_force_n = norm
+            self.fail_because(f"guiding force {norm:.1f} N above the limit {c.max_force_n:g} N: arm stopped")
+            self.v[:] = 0.0
+            return f
+        # The deadband on the force's magnitude keeps its direction (an axis-wise band would bend it).
+        f_eff = f * max(0.0, 1.0 - c.deadband_n / norm) if norm > 0 else f
+        if norm <= c.deadband_n:
+            # Released: brake to rest, whatever the virtual mass would coast.
+            speed = float(np.linalg.norm(self.v))
+            if speed > 0:
+                self.v *= max(0.0, speed - c.brake_mps2 * self.dt) / speed
+        else:
+            a = (f_eff - self.damping * self.v) / self.mass
+            na = float(np.linalg.norm(a))
+            if na > c.max_accel_mps2:
+                a *= c.max_accel_mps2 / na
+            self.v += self.dt * a
+        speed = float(np.linalg.norm(self.v))
+        if speed > c.max_speed_mps:
+            self.v *= c.max_speed_mps / speed
+        p = self.ref.translation + self.v * self.dt
+        clipped = np.clip(p, self.lo, self.hi)
+        self.v[clipped != p] = 0.0  # at the workspace's wall: stop along that axis
+        self.ref.translation = clipped
+        self._teach(obs)
+        return f
+
+    def _teach(self, obs: Observation) -> None:
+        c = self.cfg
+        tcp = self.robot.tcp_pose(np.asarray(obs.state.q, float)).translation
+        if float(np.linalg.norm(tcp - self._last_taught)) > c.teach_min_move_m:
+            self._moved_since_taught = True
+        if float(np.linalg.norm(self.v)) < c.teach_rest_speed_mps:
+            self._rest_t += self.dt
+        else:
+            self._rest_t = 0.0
+        if self._moved_since_taught and self._rest_t >= c.teach_rest_s:
+            self.taught.append([round(float(v), 5) for v in tcp])
+            self._last_taught = tcp.copy()
+            self._moved_since_taught = False
+            log.info("taught pose %d at %s m", len(self.taught), self.taught[-1])
+
+    def summary(self) -> dict[str, Any]:
+        return {"task": self.name, "outcome": self.outcome, "reason": self.reason, "final_state": self.state.value,
+                "peak_force_n": self.peak_force, "taught_poses": len(self.taught),
+                "stop_force_n": self.stop_force_n}
+
+
+def taught_task_file(poses: list[list[float]], rpy_deg: list[float], tool: str, name: str) -> dict[str, Any]:
+    """A task file (docs/task-files.md) that visits the taught poses in order: what `--teach` writes."""
+    names = [f"taught_{i + 1}" for i in range(len(poses))]
+    return {
+        "name": name,
+        "description": "poses taught by hand guiding (main.py run hand-guide --teach)",
+        "tool": tool,
+        "scene": "free",
+        # Fresh lists per pose: yaml.safe_dump writes a shared one as an alias, which task files refuse.
+        "poses": {n: {"xyz": list(p), "rpy_deg": list(rpy_deg)} for n, p in zip(names, poses, strict=True)},
+        "steps": ([{"move": {"to": names[0], "space": "joint", "speed_fraction": 0.15}}] if names else [])
+                 + [{"move": {"to": n, "speed_mps": 0.05}} for n in names[1:]] or [{"wait": {"time_s": 0.1}}],
+    }
