@@ -60,7 +60,11 @@ def save_bench_summary(out: dict[str, Any], what: str, tags: Sequence[str], args
     """Save a command's summary for `main.py figures` (artifacts/bench/<what>[-tags][-seed<S>].json); the
     command's own result stands whether or not this works, so a failure is a warning."""
     plant = getattr(args, "plant", None)
-    name = summary_name(what, [*tags, *([f"plant-{Path(plant).stem}"] if plant else [])], args.seed)
+    config = getattr(args, "config", None)
+    # Another config (another loop period, protocol or plant) measures another cell: its own file, never a
+    # figure of the default cell's row.
+    other = [f"config-{Path(config).stem}"] if config is not None and Path(config).stem != "cell" else []
+    name = summary_name(what, [*tags, *other, *([f"plant-{Path(plant).stem}"] if plant else [])], args.seed)
     try:
         path = save_summary(out, name)
     except (OSError, ValueError) as exc:

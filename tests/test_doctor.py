@@ -84,15 +84,22 @@ def test_doctor_refuses_faults_on_the_real_cell(capsys):
     assert "emulated cell only" in capsys.readouterr().err
 
 
-def test_state_rate_fails_when_the_arm_streams_slower_than_the_loop(emulated):
+def test_state_rate_fails_when_the_arm_streams_slower_than_the_loop():
     """The emulator's robot side cycles every 8 ms; a config asking for a 4 ms loop must not pass."""
-    holder, robot, cfg = emulated
+    from app.tasks_registry import robot_for
+    from cell.config import load_config
+    from sim.emulated import EmulatedCell
+
+    cfg = load_config()
+    robot = robot_for(cfg, "wipe")
+    holder = EmulatedCell(cfg, robot.limits, scene_kind="free")  # its own: the fault cases leave theirs lagging
     try:
         checks = Doctor(holder.arm, None, robot.limits,
                         DoctorSettings(period_s=cfg.loop.period_s / 2, timing_steps=10, tail_periods=3.0)).run()
     finally:
         with contextlib.suppress(DriverError):
             holder.arm.disconnect()
+        holder.close()
     out = report(checks, "emulated")
     rate = next(c for c in out["checks"] if c["name"] == "state_rate")
     assert out["passed"] is False and rate["status"] == "fail", out

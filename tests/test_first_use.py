@@ -60,7 +60,7 @@ def test_plan_on_the_nominal_model_needs_nothing_prepared(monkeypatch, cell):
 
     def fake_run_plans(cfg, robot, predictor, model_name, *rest, **kw):
         seen["model"] = model_name
-        return {"plans": 0}
+        return {"plans": 0, "paths": {}, "mean_improvement_vs_uniform_pct": None}
 
     monkeypatch.setattr("tasks.setup.plan.run_plans", fake_run_plans)
     monkeypatch.setattr("app.commands_plan.run_prepare", lambda *a, **k: pytest.fail("prepare was asked for"))

@@ -124,7 +124,8 @@ def test_plan_says_not_calibrated_without_a_kinematic_calibration(tmp_path, monk
     assert baseline[0] is None and baseline[1].startswith("not calibrated")
     (tmp_path / "kinematic.json").write_text(json.dumps({"key": {"arm": "another"}, "acceleration_limits": [1] * 6}))
     assert kinematic_baseline(cfg, robot, None, pcfg, None, "sim", None)[1].startswith("not calibrated for this arm")
-    out: dict[str, Any] = {"paths": {"p": {"improvement_pct": 44.0, "optimized_s": 1.0}}, "mean_improvement_pct": 44.0}
+    out: dict[str, Any] = {"paths": {"p": {"improvement_vs_uniform_pct": 44.0, "optimized_s": 1.0}},
+                            "mean_improvement_vs_uniform_pct": 44.0}
     add_kinematic_comparison(out, baseline, {}, cfg, robot, None)
     assert out["mean_improvement_vs_kinematic_pct"] == "not calibrated"
     assert out["paths"]["p"]["improvement_vs_kinematic_pct"] == "not calibrated"

@@ -218,7 +218,7 @@ def run_plans(
             "optimized_s": opt.elapsed_s,
             "baseline_planned_s": base.traj.duration,
             "optimized_planned_s": opt.traj.duration,
-            "improvement_pct": improvement,
+            "improvement_vs_uniform_pct": improvement,
             "baseline_outcome": base.outcome,
             "optimized_outcome": opt.outcome,
             "max_torque_ratio": float(np.nanmax(np.concatenate([base.peak_tau / effort, opt.peak_tau / effort]))),
@@ -232,15 +232,15 @@ def run_plans(
         plot_path = out_dir / f"{name}.png"
         plot_torques(name, base, opt, robot, torque_fn, plot_path)
         results[name]["plot"] = str(plot_path)
-    imp = [r["improvement_pct"] for r in results.values()]
+    imp = [r["improvement_vs_uniform_pct"] for r in results.values()]
     return {
         "model": model_name,
         "paths": results,
-        "min_improvement_pct": min(imp) if imp and all(v is not None for v in imp) else None,
-        "mean_improvement_pct": float(np.mean(imp)) if imp and all(v is not None for v in imp) else None,
+        "min_improvement_vs_uniform_pct": min(imp) if imp and all(v is not None for v in imp) else None,
+        "mean_improvement_vs_uniform_pct": float(np.mean(imp)) if imp and all(v is not None for v in imp) else None,
         "max_torque_ratio": max(r["max_torque_ratio"] for r in results.values()),
         "max_plan_time_s": max(r["plan_time_s"] for r in results.values()),
-        "paper_improvement_pct": [24.7, 15.3, 21.3],
+        "paper_improvement_vs_original_pct": [24.7, 15.3, 21.3],
     }
 
 
