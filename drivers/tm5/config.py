@@ -28,6 +28,13 @@ def _number(value: Any) -> bool:
     return not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value)
 
 
+def check_stale_periods(stale_after_s: float, dt: float, where: str) -> None:
+    """An arm's stale-data limit is at least MIN_STALE_PERIODS control periods `dt` [s], on either route."""
+    least = MIN_STALE_PERIODS * dt
+    require(stale_after_s >= least - 1e-12, join(where, "stale_after_s"),
+            f"must be >= {MIN_STALE_PERIODS} control periods ({least:g} s at {dt:g} s), got {stale_after_s!r}")
+
+
 @dataclass(frozen=True)
 class TM5ModbusConfig:
     """How to reach the controller and how strict to be about it (the `devices.arm.settings`)."""
@@ -64,9 +71,7 @@ class TM5ModbusConfig:
 
     def check_period(self, dt: float, where: str = "devices.arm.settings") -> None:
         """The settings that depend on the control period `dt` [s]: stale data is a few periods at least."""
-        least = MIN_STALE_PERIODS * dt
-        require(self.stale_after_s >= least - 1e-12, join(where, "stale_after_s"),
-                f"must be >= {MIN_STALE_PERIODS} control periods ({least:g} s at {dt:g} s), got {self.stale_after_s!r}")
+        check_stale_periods(self.stale_after_s, dt, where)
 
     @classmethod
     def from_dict(cls, d: Any, where: str) -> TM5ModbusConfig:

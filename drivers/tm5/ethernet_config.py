@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drivers.configio import join, load_dataclass, require
-from drivers.tm5.config import MIN_STALE_PERIODS
+from drivers.tm5.config import check_stale_periods
 
 
 @dataclass(frozen=True)
@@ -52,9 +52,7 @@ class TMEthernetConfig:
 
     def check_period(self, dt: float, where: str = "tm_ethernet") -> None:
         """Stale data is a few control periods at least: a shorter limit trips on the broadcast's jitter."""
-        least = MIN_STALE_PERIODS * dt
-        require(self.stale_after_s >= least - 1e-12, join(where, "stale_after_s"),
-                f"must be >= {MIN_STALE_PERIODS} control periods ({least:g} s at {dt:g} s), got {self.stale_after_s}")
+        check_stale_periods(self.stale_after_s, dt, where)
 
     @classmethod
     def from_dict(cls, data: Any, where: str) -> TMEthernetConfig:
