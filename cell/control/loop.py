@@ -16,6 +16,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from cell.collision.guard import CollisionStop, ContactGuard, Reaction
+from cell.control.priority import raised_priority
 from cell.control.safety import SafetyMonitor
 from cell.control.signals import Terminated
 from cell.data.recorder import Recorder
@@ -208,6 +209,13 @@ class ControlLoop:
         self._state_at_read = ""
 
     def run(self) -> LoopResult:
+        """Run the task to its end; on a wall clock at raised priority where the OS permits it."""
+        if isinstance(self.ticker, WallTicker):
+            with raised_priority():
+                return self._run()
+        return self._run()
+
+    def _run(self) -> LoopResult:
         outcome, reason = "done", ""
         cycle = 0
         wall0 = time.perf_counter()
