@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import yaml
 
 from app.commands_planning import add_planning_options, bench_planning_cmd, planning_tags
 from app.common import (
@@ -152,7 +155,6 @@ def held_out_dataset(manifest: Path, folder: Path) -> tuple[Path, int]:
     import pyarrow as pa
     import pyarrow.compute as pc
     import pyarrow.parquet as pq
-    import yaml
 
     from cell.data.dataset import load_manifest, manifest_files
     from drivers.configio import read_yaml
@@ -191,7 +193,6 @@ def held_out_dataset(manifest: Path, folder: Path) -> tuple[Path, int]:
 
 
 def _bench_model(args: argparse.Namespace) -> dict[str, Any]:
-    import tempfile
 
     from tasks.lab.bench import bench_model
 

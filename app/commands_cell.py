@@ -121,7 +121,6 @@ def format_status(out: dict[str, Any]) -> str:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    import time
 
     cfg = load_config(args.config)
     robot = robot_for(cfg, "wipe")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+from pathlib import Path
 from typing import Any
 
 from app.common import emit
@@ -20,7 +21,6 @@ EMULATED_TAIL_PERIODS = 3.0  # the emulators share this machine's CPU (sim/emula
 
 def add_doctor_parser(sub: Any) -> None:
     """`doctor --cell real|emulated [--tare-s S] [--inject CMD]... [--json]`."""
-    from pathlib import Path
 
     dr = sub.add_parser("doctor", help="bring-up checks of the arm and sensor wiring: named, pass/fail, what to do")
     dr.add_argument("--cell", choices=("real", "emulated"), default="real",

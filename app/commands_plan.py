@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 from dataclasses import replace
 from pathlib import Path
@@ -61,7 +62,6 @@ def kinematic_baseline(cfg: CellConfig, robot: RobotModel, predictor: Any, pcfg:
     """The calibrated kinematic planner (TOPP-RA with speed and acceleration limits only, the accelerations
     calibrated once per arm on the plant by `bench planning`), or None and why not: without a calibration
     made for this arm and these planner settings there is no honest kinematic figure to give."""
-    import json
 
     from app.cells import cell_identity
     from app.commands_planning import ARTEFACTS

@@ -14,6 +14,8 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
+from tqdm import std, tqdm
+
 log = logging.getLogger("tmcell")
 LOG_STEP_PCT = 10  # off a terminal: one line per this share of the job
 UNKNOWN_TOTAL_EVERY_S = 30.0  # a bar without a total: one line this often
@@ -32,7 +34,6 @@ class _Discard:
 
 def _report(bar: Any, final: bool = False) -> None:
     """Log `bar`'s k/N, elapsed time and ETA when it crossed the next 10 % (or ends)."""
-    from tqdm import tqdm
 
     total, n = bar.total, bar.n
     elapsed = time.monotonic() - bar._tmcell_t0
@@ -59,7 +60,6 @@ def quiet_bars_off_terminal() -> None:
     global _installed
     if _installed or sys.stderr.isatty():
         return
-    from tqdm import std
 
     cls = std.tqdm
     init, update, close = cls.__init__, cls.update, cls.close
