@@ -11,7 +11,6 @@ and takes fault-injection commands on stdin, one per line, each answered by `{"a
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import logging
 import math
@@ -23,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from cell.config import CellConfig, SceneKind, load_config, resolve
-from cell.control.priority import LOOP_NICE
+from cell.control.priority import raised_priority
 from drivers.errors import CellError
 from drivers.real_cell import arm_protocol
 from drivers.tm5.contract import UserAreaLayout
@@ -83,15 +82,12 @@ def serve_cell(cfg: CellConfig, seed: int | None, scene: SceneKind, port: int = 
         # Driven by a host through a pipe: a terminal's Ctrl+C is for the host, which stops the arm
         # through us and then closes our stdin.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # The emulated controller and sensor stand for machines with their own CPUs: on a shared host they run at
-    # the control loop's priority (where permitted), so a busy machine starves neither side of the wire.
-    with contextlib.suppress(OSError):
-        if os.getpriority(os.PRIO_PROCESS, 0) > LOOP_NICE:
-            os.setpriority(os.PRIO_PROCESS, 0, LOOP_NICE)
     plant = make_plant(cfg, seed, scene)
     sensor_faults = FaultConfig()
     quit_asked = threading.Event()
-    with arm_emulator(cfg, plant, port, listen_port, bind=bind) as arm_emu, \
+    # The emulated controller and sensor stand for machines with their own CPUs: on a shared host they run at
+    # the control loop's priority (where permitted), so a busy machine starves neither side of the wire.
+    with raised_priority(), arm_emulator(cfg, plant, port, listen_port, bind=bind) as arm_emu, \
             WacohEmulator(plant.true_sensor_wrench, seed=plant.profile.seed, faults=sensor_faults) as sensor_emu:
 
         def fault_commands() -> None:

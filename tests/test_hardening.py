@@ -1,4 +1,4 @@
-"""Bad input and abuse (issue 16, first part): strict YAML, physical bounds on the safety limits, complete
+"""Bad input and abuse: strict YAML, physical bounds on the safety limits, complete
 cell configs, one validation of CLI arguments, and SIGTERM handled as Ctrl+C."""
 
 from __future__ import annotations

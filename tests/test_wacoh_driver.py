@@ -21,6 +21,7 @@ from drivers.wacoh.codec import (
 )
 from drivers.wacoh.config import WacohConfig
 from drivers.wacoh.driver import WacohSensor
+from drivers.wacoh.sensitivity import P_ATTEMPTS
 from sim.wacoh_emulator import REAL_UNIT_SENSITIVITIES, FaultConfig, draw_bit_flips, flip_bits
 from tests.test_wacoh_codec import REAL_LINE, corruptions
 from tests.wacoh_fixtures import FALLBACK, NOMINAL, SLACK_TIMEOUT_S, EmulatorFactory, Source, connect
@@ -194,9 +195,9 @@ def test_connect_falls_back_when_p_is_never_answered(
 ) -> None:
     emulator = make_emulator(Source(), faults=FaultConfig(ignore_p=True))
     caplog.set_level(logging.WARNING, logger="drivers.wacoh.driver")
-    t0 = time.monotonic()
     sensor = connect(sensors, emulator, sensitivities=list(FALLBACK.values), timeout_s=0.05)
-    assert time.monotonic() - t0 < 0.5
+    # A bounded number of asks, each bounded by timeout_s: connect cannot hang on a silent `p`.
+    assert 1 <= emulator.commands.get("p", 0) <= P_ATTEMPTS
     assert sensor.sensitivities_source == "config"
     assert sensor.sensitivities == FALLBACK
     assert any("no reply to 'p'" in r.getMessage() for r in caplog.records)
