@@ -99,7 +99,25 @@ def read_status(cell: Any, robot: Any) -> dict[str, Any]:
         "wrench_units": "N (Fx, Fy, Fz), N m (Mx, My, Mz)",
         "wrench_frame": "F/T sensor frame, at the sensor face; what the tool exerts (pressing down reads +Fz)",
         "wrench_tared": False,
+        **modbus_cross_check(cell.arm),
     }
+
+
+def modbus_cross_check(arm: Any) -> dict[str, Any]:
+    """On TM's channels, `modbus_cross_check`: the controller's own Modbus table against the Ethernet Slave's
+    (None when devices.arm.settings.modbus_port is null, `error` when it cannot be read); nothing elsewhere."""
+    from drivers.errors import DriverError
+    from drivers.tm5.ethernet import TMEthernetArm
+    from drivers.tm5.table_check import check_arm
+
+    if not isinstance(arm, TMEthernetArm):
+        return {}
+    if arm.config.modbus_port is None:
+        return {"modbus_cross_check": None}
+    try:
+        return {"modbus_cross_check": check_arm(arm).as_dict()}
+    except DriverError as exc:  # a reading command reports what it could not read, and reads on
+        return {"modbus_cross_check": {"error": str(exc)}}
 
 
 def format_status(out: dict[str, Any]) -> str:
@@ -117,7 +135,21 @@ def format_status(out: dict[str, Any]) -> str:
         f"TCP position [m] (base frame): {row(out['tcp_m'], '.4f')}",
         f"wrench {WRENCH_WHERE}: " + "  ".join(f"{a} {v:.3f} {'N' if a[0] == 'F' else 'N m'}"
                                               for a, v in zip(AXES, w, strict=True)),
+        *_cross_check_line(out),
     ])
+
+
+def _cross_check_line(out: dict[str, Any]) -> list[str]:
+    if "modbus_cross_check" not in out:
+        return []
+    check = out["modbus_cross_check"]
+    if check is None:
+        return ["Modbus cross-check: off (devices.arm.settings.modbus_port is null)"]
+    if "error" in check:
+        return [f"Modbus cross-check: cannot read: {check['error']}"]
+    flags = "; flags differ: " + "; ".join(check["differing_flags"]) if check["differing_flags"] else ""
+    return [f"Modbus cross-check ({check['endpoint']}): {'agrees' if check['agrees'] else 'DISAGREES'}, joints "
+            f"off the Ethernet Slave's by at most {check['max_joint_diff_deg']:.3f} deg{flags}"]
 
 
 def cmd_status(args: argparse.Namespace) -> int:

@@ -11,6 +11,9 @@ from cell.control.loop import OpenCell
 from cell.sensing.ft_source import SensorForceSource
 from drivers.errors import ConfigError
 from drivers.interfaces import JointLimits
+from drivers.real_cell import arm_protocol
+from drivers.tm5.ethernet_config import TMEthernetConfig
+from drivers.tm5.velocity_loop import VelocityLoop
 from sim.drivers import LockstepTicker, PacedTicker, SimArm, SimForceSensor
 from sim.plant import Plant
 from sim.profile import load_profile
@@ -57,4 +60,17 @@ def make_sim_cell(
     tool: str | None = None,
 ) -> SimCell:
     plant = make_plant(cfg, seed, scene_kind, tool)
-    return SimCell(plant=plant, arm=SimArm(plant, limits), sensor=SimForceSensor(plant), clock=cfg.loop.clock)
+    arm = SimArm(plant, limits, velocity_streaming(cfg, limits))
+    return SimCell(plant=plant, arm=arm, sensor=SimForceSensor(plant), clock=cfg.loop.clock)
+
+
+def velocity_streaming(cfg: CellConfig, limits: JointLimits) -> VelocityLoop | None:
+    """The host's velocity loop when the config's arm protocol streams speeds (TM's Ethernet route), with
+    the config's gain and latency, so the simulated cell commands the plant as that route does."""
+    where = f"{cfg.source}: devices.arm.settings"
+    settings = cfg.devices.arm.settings
+    if arm_protocol(settings, where) != "tm-ethernet":
+        return None
+    raw = {"host": "127.0.0.1", **{k: v for k, v in settings.items() if k != "protocol"}}
+    eth = TMEthernetConfig.from_dict(raw, where)
+    return VelocityLoop(limits, cfg.loop.period_s, eth.position_gain, eth.command_latency_periods)

@@ -6,15 +6,23 @@ import numpy as np
 
 from cell.control.loop import WallTicker
 from drivers.interfaces import Arm, ArmState, ForceSensor, JointLimits, Wrench
+from drivers.tm5.velocity_loop import VelocityLoop
 from sim.plant import Plant
 
 
 class SimArm(Arm):
-    """The plant's arm through the `Arm` interface: a stop is the controller's protective stop."""
+    """The plant's arm through the `Arm` interface: a stop is the controller's protective stop.
 
-    def __init__(self, plant: Plant, limits: JointLimits) -> None:
+    With `streaming` (TM's Ethernet route) it commands as the Listen node is commanded: the host's
+    velocity loop turns each target into joint speeds and the controller integrates them into its servo
+    target, from the measured joints when streaming starts; without, targets go straight to the servo.
+    """
+
+    def __init__(self, plant: Plant, limits: JointLimits, streaming: VelocityLoop | None = None) -> None:
         super().__init__(limits, plant.dt)
         self.plant = plant
+        self.streaming = streaming
+        self._q_cmd: np.ndarray | None = None
 
     def _connect(self) -> None:
         pass
@@ -25,12 +33,25 @@ class SimArm(Arm):
     def _arm(self) -> None:
         if self.plant.holding:
             self.plant.release()
+        if self.streaming is not None:
+            self.streaming.reset()
+            self._q_cmd = None
 
     def _read_state(self) -> ArmState:
         return self.plant.measured_state()
 
     def _write_target(self, q: np.ndarray) -> None:
-        self.plant.set_target(q)
+        if self.streaming is None:
+            self.plant.set_target(q)
+            return
+        assert self._last_sent is not None
+        q_meas = self.plant.measured_state().q
+        v = self.streaming.speeds(q, self._last_sent, q_meas)
+        if self._q_cmd is None:
+            self._q_cmd = np.array(q_meas, dtype=float)
+        self._q_cmd = self._q_cmd + v * self.dt
+        self.plant.set_target(self._q_cmd)
+        self.streaming.sent(v)
 
     def _stop(self) -> None:
         self.plant.hold()

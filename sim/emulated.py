@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 START_TIMEOUT_S = 30.0
 
 # Settings the emulated cell chooses itself (where the emulators listen); the rest come from config.
-_ARM_OWNED = ("host", "port", "slave_port", "listen_port")
+_ARM_OWNED = ("host", "port", "slave_port", "listen_port", "modbus_port")
 _SENSOR_OWNED = ("port",)
 # The emulators share this machine's CPU with the host (a real controller and sensor do not), so a
 # reply may come late when the machine is busy: allow this much before calling the link lost.  A

@@ -199,6 +199,16 @@ class Plant:
         self._restart_command_queue(q)
         self.status = ArmStatus()
 
+    def take_command_latency(self) -> int:
+        """Hand the command channel's latency to whoever emulates that channel (a Listen node's queue): the
+        plant stops delaying targets and returns the periods it delayed them by."""
+        latency = self.profile.servo.command_latency_periods
+        if latency:
+            self.profile = dataclasses.replace(
+                self.profile, servo=dataclasses.replace(self.profile.servo, command_latency_periods=0))
+            self._restart_command_queue(np.array(self.target, float))
+        return latency
+
     def _restart_command_queue(self, q: np.ndarray) -> None:
         """The command channel's latency: the servo takes the target set `command_latency_periods` ago."""
         latency = self.profile.servo.command_latency_periods

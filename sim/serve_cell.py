@@ -4,7 +4,8 @@ Run as `python -m sim.serve_cell --config C --plant P --scene S [--seed N]` (wha
 starts, and what `main.py emulate cell` runs in-process).  It prints one JSON line `{"port": ..., "tty": ...}`
 and takes fault-injection commands on stdin, one per line, each answered by `{"ack": ...}` (or
 `{"error": ...}`) once in effect: `drop_link 1.5`, `freeze 2`, `unfreeze`, `delay 20 1.0`, `exceptions 1.0`,
-`estop [2]`, `clear`, `sensor garbage 0.3`, `sensor split 0.5`, `sensor drop 0.2`, `sensor delay 12 [0.4]`,
+`estop [2]`, `clear`, `table_offset 5` (TM's channels: the Modbus table's joints read 5 deg off),
+`sensor garbage 0.3`, `sensor split 0.5`, `sensor drop 0.2`, `sensor delay 12 [0.4]`,
 `sensor clear`, `quit`.
 """
 
@@ -48,16 +49,19 @@ def child_command(cfg: CellConfig, seed: int | None, scene: SceneKind) -> tuple[
 
 
 def arm_emulator(cfg: CellConfig, plant: Any, port: int = 0, listen_port: int = 0,
-                 broadcast_period_s: float | None = None, bind: str = "127.0.0.1") -> Any:
+                 broadcast_period_s: float | None = None, bind: str = "127.0.0.1", modbus_port: int = 0) -> Any:
     """The arm's emulator for the config's protocol on `plant` (not started): the Modbus controller running
-    the robot-side program on `port`, or TM's Ethernet Slave (`port`) and Listen node (`listen_port`), whose
-    broadcast runs at the plant's sample period unless `broadcast_period_s` says otherwise.  It listens on
-    `bind` only (this machine unless said otherwise: an emulated arm takes commands from whoever connects)."""
+    the robot-side program on `port`, or TM's Ethernet Slave (`port`), Listen node (`listen_port`) and the
+    controller's Modbus table (`modbus_port`), whose broadcast runs at the plant's sample period unless
+    `broadcast_period_s` says otherwise.  It listens on `bind` only (this machine unless said otherwise: an
+    emulated arm takes commands from whoever connects)."""
     from sim.tm5_emulator import TM5Emulator
 
     if arm_protocol(cfg.devices.arm.settings, f"{cfg.source}: devices.arm.settings") == "tm-ethernet":
+        # The command channel's latency sits in the Listen node's queue, where QueueTag (doctor) sees it.
         return TMEthernetEmulator(plant, host=bind, slave_port=port, listen_port=listen_port,
-                                  period_s=broadcast_period_s or plant.dt, seed=plant.profile.seed)
+                                  period_s=broadcast_period_s or plant.dt, seed=plant.profile.seed,
+                                  modbus_port=modbus_port, command_latency_cycles=plant.take_command_latency())
     return TM5Emulator(plant, host=bind, port=port, layout=UserAreaLayout.from_dict(
         cfg.devices.arm.settings.get("user_area", {}), f"{cfg.source}: devices.arm.settings.user_area"))
 
@@ -65,7 +69,10 @@ def arm_emulator(cfg: CellConfig, plant: Any, port: int = 0, listen_port: int = 
 def arm_endpoint(arm_emu: Any) -> dict[str, int]:
     """Where a started arm emulator listens, as the host's `devices.arm.settings` name it."""
     if isinstance(arm_emu, TMEthernetEmulator):
-        return {"slave_port": arm_emu.slave_port, "listen_port": arm_emu.listen_port}
+        out = {"slave_port": arm_emu.slave_port, "listen_port": arm_emu.listen_port}
+        if arm_emu.modbus_port is not None:
+            out["modbus_port"] = arm_emu.modbus_port
+        return out
     return {"port": arm_emu.port}
 
 
@@ -127,7 +134,7 @@ def serve_cell(cfg: CellConfig, seed: int | None, scene: SceneKind, port: int = 
 # milliseconds or a probability), checked whole: a malformed one is refused, never skipped (which would
 # change the command's meaning, e.g. `delay 20 -1` read as `delay 20`: for ever).
 ARM_COMMANDS = {"drop_link": (1, 1), "freeze": (0, 1), "unfreeze": (0, 0), "delay": (1, 2), "exceptions": (0, 1),
-                "estop": (0, 1), "clear": (0, 0)}
+                "estop": (0, 1), "clear": (0, 0), "table_offset": (1, 1)}
 SENSOR_COMMANDS = {"garbage": (1, 1), "split": (1, 1), "drop": (1, 1), "delay": (1, 2), "clear": (0, 0)}
 
 
@@ -189,6 +196,9 @@ def _apply(words: list[str], arm_emu: Any, sensor_faults: Any) -> None:
         arm_emu.inject_exceptions(args[0] if args else None)
     elif head == "estop":
         arm_emu.press_estop(args[0] if args else None)
+    elif head == "table_offset":
+        raise ValueError("'table_offset' is for TM's channels (the Modbus table beside the Ethernet Slave); this "
+                         "emulator serves Modbus alone")
     else:
         arm_emu.clear_faults()
 
@@ -202,6 +212,8 @@ def _apply_tm_ethernet(head: str, args: list[float], arm_emu: Any) -> None:
         arm_emu.go_silent(args[0] if args else None)
     elif head == "estop":
         arm_emu.press_estop(args[0] if args else None)
+    elif head == "table_offset":
+        arm_emu.offset_modbus_joints(args[0])
     elif head in ("unfreeze", "clear"):
         arm_emu.clear_faults()
     else:

@@ -16,7 +16,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 from pymodbus.constants import ExcCodes
-from pymodbus.server import ModbusBaseServer, ModbusTcpServer
+from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.errors import ConfigError
@@ -25,25 +25,15 @@ from drivers.tm5.contract import UserAreaLayout
 from drivers.tm5.registers import (
     COIL_PLAY_PAUSE,
     COIL_STOP,
-    DI_COUNT,
     DI_ERROR,
-    DI_ESTOP,
     DI_FIRST,
-    DI_PAUSED,
-    DI_RUNNING,
-    IR_COUNT,
-    IR_FIRST,
-    IR_FLANGE_POSE,
-    IR_JOINTS,
-    IR_TOOL_POSE,
     USER_AREA_FIRST,
     USER_AREA_LAST,
-    floats_to_regs,
-    pose_to_regs,
     wrap_int32,
 )
 from sim.plant_api import PlantLike
 from sim.tm5_program import LEASE_TIMEOUT_S, RobotProgramState, RobotSideProgram
+from sim.tm_modbus_table import ControllerTable, close_server, start_server
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +43,7 @@ _HR_COUNT = USER_AREA_LAST - USER_AREA_FIRST + 1
 _READ_HOLDING = {3, 23}
 _WRITE_HOLDING = {6, 16, 23}
 # pymodbus' non-shared bit blocks address bit b as register b // 16, bit b % 16: keep our bases aligned.
-assert DI_FIRST % 16 == 0 and COIL_PLAY_PAUSE % 16 == 0 and COIL_STOP // 16 == COIL_PLAY_PAUSE // 16
+assert COIL_PLAY_PAUSE % 16 == 0 and COIL_STOP // 16 == COIL_PLAY_PAUSE // 16
 
 
 # ------------------------------------------------------------------------------------------------
@@ -124,8 +114,7 @@ class TM5Emulator:
         self.cycles = 0
         self._requested_port = port
         self._port: int | None = None
-        self._ir = [0] * IR_COUNT
-        self._di = [False] * DI_COUNT
+        self._table = ControllerTable()
         self._hr = [0] * _HR_COUNT
         self._robot = RobotSideProgram(plant, self.layout, self._hr, watchdog_cycles, lease_timeout_s)
         self._history: OrderedDict[int, ArmState] = OrderedDict()
@@ -283,21 +272,12 @@ class TM5Emulator:
             await self._close_server()
 
     async def _listen(self, port: int) -> None:
-        server = ModbusTcpServer(self._device, address=(self.host, port))
-        await server.serve_forever(background=True)  # RuntimeError when the address cannot be bound
-        listener: Any = server.transport
-        self._port = int(listener.sockets[0].getsockname()[1])
-        self._server = server
+        self._server, self._port = await start_server(self._device, self.host, port)
 
     async def _close_server(self) -> None:
         server, self._server = self._server, None
-        if server is None:
-            return
-        await server.shutdown()  # closes the listener and every client connection
-        if ModbusBaseServer.active_server is server:  # pymodbus' class-level reference would keep us alive
-            ModbusBaseServer.active_server = None
-        for _ in range(3):  # let the transports run their connection_lost callbacks (sockets closed)
-            await asyncio.sleep(0)
+        if server is not None:
+            await close_server(server)
 
     async def _drop_link(self, seconds: float) -> None:
         self.faults.link_down_until = time.monotonic() + seconds
@@ -329,7 +309,7 @@ class TM5Emulator:
             except Exception:  # noqa: BLE001 - a broken plant is a controller error, not a dead server
                 log.exception("TM5 emulator: cycle failed; the controller reports an error from now on")
                 self._cycle_failed = True
-                self._di[DI_ERROR - DI_FIRST] = True
+                self._table.di[DI_ERROR - DI_FIRST] = True
                 return
             deadline += period
             delay = deadline - time.monotonic()
@@ -377,19 +357,10 @@ class TM5Emulator:
     def _publish_controller(self) -> None:
         """The controller's own registers: joint angles, poses, status inputs."""
         st = self.plant.measured_state()
-        ir = self._ir
-        j = IR_JOINTS - IR_FIRST
-        ir[j:j + 12] = floats_to_regs(np.degrees(st.q), allow_nonfinite=True)
-        f = IR_FLANGE_POSE - IR_FIRST
-        ir[f:f + 12] = pose_to_regs(*self.plant.flange_pose(), allow_nonfinite=True)
-        t = IR_TOOL_POSE - IR_FIRST
-        ir[t:t + 12] = pose_to_regs(*self.plant.tool_pose(), allow_nonfinite=True)
-        di = self._di
-        di[0] = True  # 7200: robot link up
-        di[DI_ERROR - DI_FIRST] = st.status.error or self._cycle_failed
-        di[DI_RUNNING - DI_FIRST] = st.status.project_running and self.project_running
-        di[DI_PAUSED - DI_FIRST] = st.status.paused or self.paused
-        di[DI_ESTOP - DI_FIRST] = st.status.estop or self.faults.estop(time.monotonic())
+        self._table.publish(self.plant, st.q, error=st.status.error or self._cycle_failed,
+                            running=st.status.project_running and self.project_running,
+                            paused=st.status.paused or self.paused,
+                            estop=st.status.estop or self.faults.estop(time.monotonic()))
 
     def _publish_user_area(self) -> None:
         st = self._robot.publish()
@@ -406,9 +377,9 @@ class TM5Emulator:
             0,  # device id 0 answers every unit id, as the controller does not care which one is used
             simdata=(
                 [SimData(COIL_PLAY_PAUSE, count=2, values=False, datatype=DataType.BITS)],
-                [SimData(DI_FIRST, count=DI_COUNT, values=False, datatype=DataType.BITS)],
+                self._table.discrete_inputs_block(),
                 [SimData(USER_AREA_FIRST, count=_HR_COUNT, values=0, datatype=DataType.REGISTERS)],
-                [SimData(IR_FIRST, count=IR_COUNT, values=0, datatype=DataType.REGISTERS)],
+                self._table.input_registers_block(),
             ),
             action=self._on_access,
         )
@@ -422,11 +393,9 @@ class TM5Emulator:
         code = self.faults.exception(now)
         if code is not None:
             return ExcCodes(code)
-        if function_code == 4:
-            registers[address - start:address - start + count] = self._ir[address - IR_FIRST:address - IR_FIRST + count]
-        elif function_code == 2:
-            registers[DI_FIRST // 16 - start] = sum(1 << i for i, bit in enumerate(self._di) if bit)
-        elif function_code in (1, 5, 15):
+        if self._table.serve_read(function_code, start, address, count, registers):
+            return None
+        if function_code in (1, 5, 15):
             if values:
                 self._on_coils(address, [bool(v) for v in values])
             registers[COIL_PLAY_PAUSE // 16 - start] = 0  # momentary: coils read back as released

@@ -1,4 +1,4 @@
-"""TM5-700 emulator on TM's own channels: the Ethernet Slave broadcast and a Listen node on a plant, with faults."""
+"""TM5-700 emulator on TM's channels: the Ethernet Slave broadcast, a Listen node, the Modbus table; with faults."""
 
 from __future__ import annotations
 
@@ -16,6 +16,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from pymodbus.constants import ExcCodes
+from pymodbus.server import ModbusTcpServer
 
 from drivers.errors import ConfigError, ProtocolError
 from drivers.interfaces import ArmState
@@ -31,6 +33,7 @@ from drivers.tm5.ethernet_slave import (
 from drivers.tm5.tm_packet import FrameError, TMFramer, encode_packet
 from sim.plant_api import PlantLike
 from sim.tm_listen_node import ListenNode
+from sim.tm_modbus_table import ControllerTable, close_server, start_server, table_device
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +53,7 @@ class TMEthernetFaults:
     error_until: float = 0.0  # Robot_Error reads 1, the arm holds
     drop_probability: float = 0.0  # a broadcast packet is lost
     corrupt_probability: float = 0.0  # a broadcast packet's checksum is wrong
+    modbus_offset_deg: float = 0.0  # the Modbus table's joint angles read this much off (a table that disagrees)
 
     def validate(self) -> None:
         for name in ("drop_probability", "corrupt_probability"):
@@ -59,8 +63,10 @@ class TMEthernetFaults:
 
 
 class TMEthernetEmulator:
-    """A TM5-700 on 127.0.0.1: Ethernet Slave (`$TMSVR` table every `period_s`) and Listen node (`$TMSCT`,
-    `$TMSTA`), both on port 0 by default, on one asyncio loop in a background thread with the servo cycle.
+    """A TM5-700 on 127.0.0.1: Ethernet Slave (`$TMSVR` table every `period_s`), Listen node (`$TMSCT`,
+    `$TMSTA`) and the controller's own Modbus table (joint angles, poses, status inputs; read-only; None for
+    `modbus_port` serves none), all on port 0 by default, on one asyncio loop in a background thread with the
+    servo cycle.  The Modbus table is taken from the plant when it is read.
 
     Each servo cycle (`plant.dt / time_scale` wall seconds) runs the Listen node's due statements,
     integrates the streamed joint speed into the plant's target and steps the plant.  The broadcast runs on
@@ -71,7 +77,8 @@ class TMEthernetEmulator:
     def __init__(self, plant: PlantLike, host: str = "127.0.0.1", slave_port: int = 0, listen_port: int = 0,
                  period_s: float = DEFAULT_PERIOD_S, time_scale: float = 1.0, coalesce: int = 1, split: int = 1,
                  mode: TableMode = "binary", items: Sequence[str] | None = None, command_latency_cycles: int = 0,
-                 node_message: str = "Listen1", vjog_timeout_s: float | None = None, seed: int = 0) -> None:
+                 node_message: str = "Listen1", vjog_timeout_s: float | None = None, seed: int = 0,
+                 modbus_port: int | None = 0) -> None:
         if not (period_s > 0 and math.isfinite(period_s)):
             raise ConfigError(f"TM Ethernet emulator: period_s must be positive, got {period_s!r}")
         if not (time_scale > 0 and math.isfinite(time_scale)):
@@ -97,6 +104,9 @@ class TMEthernetEmulator:
         self._rng = random.Random(seed)
         self._ports = (slave_port, listen_port)
         self._bound: tuple[int, int] | None = None
+        self._modbus_requested = modbus_port
+        self._modbus_bound: int | None = None
+        self._table = ControllerTable()
         self._slave_clients: set[asyncio.StreamWriter] = set()
         self._listen_clients: set[asyncio.StreamWriter] = set()
         self._pending: list[bytes] = []
@@ -116,6 +126,12 @@ class TMEthernetEmulator:
     def listen_port(self) -> int:
         return self._require_bound()[1]
 
+    @property
+    def modbus_port(self) -> int | None:
+        """Where the controller's Modbus table is served (None: not served)."""
+        self._require_bound()
+        return self._modbus_bound
+
     def start(self) -> tuple[int, int]:
         """Serve; returns (slave port, listen port).  ConfigError when an address cannot be bound."""
         if self._thread is not None:
@@ -126,8 +142,8 @@ class TMEthernetEmulator:
             raise RuntimeError("the emulator thread did not start within 10 s")
         if self._startup_error is not None:
             self._thread.join(5.0)
-            raise ConfigError(f"TM Ethernet emulator cannot listen on {self.host}:{self._ports} "
-                              f"({self._startup_error})")
+            ports = (*self._ports, self._modbus_requested)
+            raise ConfigError(f"TM Ethernet emulator cannot listen on {self.host}:{ports} ({self._startup_error})")
         return self._require_bound()
 
     def stop(self) -> None:
@@ -167,9 +183,15 @@ class TMEthernetEmulator:
         TMEthernetFaults(drop_probability=drop, corrupt_probability=corrupt).validate()
         self._set(drop_probability=drop, corrupt_probability=corrupt)
 
+    def offset_modbus_joints(self, deg: float) -> None:
+        """The Modbus table's joint angles read `deg` off the broadcast's on every joint (0: agree again)."""
+        if not math.isfinite(deg):
+            raise ValueError(f"the Modbus joint offset must be finite, got {deg!r}")
+        self._set(modbus_offset_deg=deg)
+
     def clear_faults(self) -> None:
         self._set(silent_until=0.0, link_down_until=0.0, estop_until=0.0, error_until=0.0, drop_probability=0.0,
-                  corrupt_probability=0.0)
+                  corrupt_probability=0.0, modbus_offset_deg=0.0)
 
     def enter_node(self) -> None:
         """The flow reaches the Listen node: connected clients get the entry message."""
@@ -200,7 +222,11 @@ class TMEthernetEmulator:
         try:
             slave = await asyncio.start_server(self._on_slave_client, self.host, self._ports[0])
             listen = await asyncio.start_server(self._on_listen_client, self.host, self._ports[1])
-        except OSError as exc:
+            modbus: ModbusTcpServer | None = None
+            if self._modbus_requested is not None:
+                modbus, self._modbus_bound = await start_server(table_device(self._table, self._on_modbus),
+                                                                self.host, self._modbus_requested)
+        except (OSError, RuntimeError) as exc:  # pymodbus says RuntimeError when it cannot bind
             self._startup_error = exc
             self._ready.set()
             return
@@ -220,6 +246,8 @@ class TMEthernetEmulator:
                     await task
             for server in (slave, listen):
                 await server.wait_closed()
+            if modbus is not None:
+                await close_server(modbus)
 
     async def _on_slave_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if self._link_down():
@@ -265,6 +293,21 @@ class TMEthernetEmulator:
             writer.close()
         self._slave_clients.clear()
         self._listen_clients.clear()
+
+    async def _on_modbus(self, function_code: int, start: int, address: int, count: int, registers: list[int],
+                         values: list[int] | list[bool] | None) -> ExcCodes | None:
+        """Reads of the table get the plant as it is now; the controller's coils and user area belong to
+        route A's program, which this emulator does not run."""
+        if function_code in (2, 4):
+            now = time.monotonic()
+            st = self.plant.measured_state()
+            self._table.publish(self.plant, st.q, error=self._error(now) or st.status.error,
+                                running=st.status.project_running, paused=st.status.paused,
+                                estop=self._estop(now) or st.status.estop,
+                                joint_offset_deg=self.faults.modbus_offset_deg)
+        if self._table.serve_read(function_code, start, address, count, registers):
+            return None
+        return ExcCodes.ILLEGAL_FUNCTION
 
     # ----------------------------------------------------------------------------- servo and broadcast
     async def _servo(self) -> None:

@@ -10,33 +10,62 @@ import pytest
 from cell.control import priority
 
 
-def test_the_priority_is_raised_within_the_block_and_restored_after(monkeypatch):
-    calls: list[int] = []
-    monkeypatch.setattr(os, "getpriority", lambda which, who: 0)
-    monkeypatch.setattr(os, "setpriority", lambda which, who, nice: calls.append(nice))
-    with priority.raised_priority(-10) as raised:
-        assert raised and calls == [-10]
-    assert calls == [-10, 0]
+@pytest.fixture
+def scheduler(monkeypatch):
+    """A fake scheduler: records the policy and nice calls; `refuse` lists what it does not permit."""
+    state = {"policy": os.SCHED_OTHER, "nice": 0, "calls": [], "refuse": set()}
 
+    def setscheduler(pid: int, policy: int, param: os.sched_param) -> None:
+        if "realtime" in state["refuse"] and policy == os.SCHED_FIFO:
+            raise PermissionError("not permitted")
+        state["calls"].append(("policy", policy, param.sched_priority))
+        state["policy"] = policy
 
-def test_without_permission_the_loop_runs_as_it_is_and_says_so_once(monkeypatch, caplog):
-    def refuse(which: int, who: int, nice: int) -> None:
-        raise PermissionError("not permitted")
+    def setpriority(which: int, who: int, nice: int) -> None:
+        if "nice" in state["refuse"]:
+            raise PermissionError("not permitted")
+        state["calls"].append(("nice", nice))
+        state["nice"] = nice
 
-    monkeypatch.setattr(os, "getpriority", lambda which, who: 0)
-    monkeypatch.setattr(os, "setpriority", refuse)
+    monkeypatch.setattr(os, "sched_getscheduler", lambda pid: state["policy"])
+    monkeypatch.setattr(os, "sched_getparam", lambda pid: os.sched_param(0))
+    monkeypatch.setattr(os, "sched_setscheduler", setscheduler)
+    monkeypatch.setattr(os, "getpriority", lambda which, who: state["nice"])
+    monkeypatch.setattr(os, "setpriority", setpriority)
     monkeypatch.setattr(priority, "_warned", False)
+    return state
+
+
+def test_the_loop_runs_realtime_within_the_block_and_returns_to_normal_after(scheduler):
+    with priority.raised_priority() as raised:
+        assert raised == "realtime" and scheduler["policy"] == os.SCHED_FIFO
+        assert scheduler["calls"] == [("policy", os.SCHED_FIFO, priority.LOOP_RT_PRIORITY)]
+    assert scheduler["policy"] == os.SCHED_OTHER and scheduler["nice"] == 0
+
+
+def test_without_the_realtime_right_the_nice_value_is_raised_and_restored(scheduler):
+    scheduler["refuse"].add("realtime")
+    with priority.raised_priority(-10) as raised:
+        assert raised == "nice" and scheduler["nice"] == -10
+    assert scheduler["calls"] == [("nice", -10), ("nice", 0)]
+
+
+def test_without_permission_the_loop_runs_as_it_is_and_says_so_once(scheduler, caplog):
+    scheduler["refuse"].update({"realtime", "nice"})
     with caplog.at_level(logging.INFO, logger="cell.control.priority"):
         for _ in range(2):
             with priority.raised_priority(-10) as raised:
-                assert not raised
+                assert raised == "normal"
     assert sum("CAP_SYS_NICE" in r.message for r in caplog.records) == 1
+    assert scheduler["calls"] == []
 
 
-def test_an_exception_in_the_block_still_restores_the_priority(monkeypatch):
-    calls: list[int] = []
-    monkeypatch.setattr(os, "getpriority", lambda which, who: 5)
-    monkeypatch.setattr(os, "setpriority", lambda which, who, nice: calls.append(nice))
+def test_an_exception_in_the_block_still_restores_the_scheduling(scheduler):
     with pytest.raises(RuntimeError), priority.raised_priority(-10):
         raise RuntimeError("the task failed")
-    assert calls == [-10, 5]
+    assert scheduler["policy"] == os.SCHED_OTHER
+    scheduler["refuse"].add("realtime")
+    scheduler["nice"] = 5
+    with pytest.raises(RuntimeError), priority.raised_priority(-10):
+        raise RuntimeError("the task failed")
+    assert scheduler["nice"] == 5

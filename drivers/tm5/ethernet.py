@@ -40,14 +40,13 @@ from drivers.tm5.listen import (
     stop_and_clear_buffer,
     stop_continue_vmode,
 )
+from drivers.tm5.table_check import check_before_arming
 from drivers.tm5.tm_link import TMLink
 from drivers.tm5.tm_packet import TMPacket
+from drivers.tm5.velocity_loop import VelocityLoop
 
 log = logging.getLogger(__name__)
 
-# Near a joint limit the streamed speed is capped so that holding it this long still stops inside the
-# range: the controller keeps the last speed until told otherwise, and a stalled host tells it nothing.
-LIMIT_HORIZON_S = 0.1
 _POLL_S = 0.002  # sleep between polls while connect() or arm() wait for the robot
 _NODE_HINT = "start the project in TMflow and let its flow reach the Listen node, then arm again"
 
@@ -78,6 +77,8 @@ class TMEthernetArm(Arm):
         self._entry_message: str | None = None
         self._tag_done: bool | None = None
         self._warned_untested = False
+        self.velocity_loop = VelocityLoop(limits, dt, config.position_gain, config.command_latency_periods,
+                                          speed_scale)
 
     # ----------------------------------------------------------------------------- public extras
     @property
@@ -175,8 +176,11 @@ class TMEthernetArm(Arm):
         status = self._status(self._fresh_table())
         if not status.ok:
             raise LifecycleError(f"cannot arm: controller reports {status}")
+        if self.config.modbus_port is not None:  # the controller's own Modbus table must tell the same story
+            check_before_arming(self)
         tid = self._send_script([continue_vjog()])
         self._wait_for(lambda: tid in self._replies, f"the reply to ContinueVJog() (script {tid})")
+        self.velocity_loop.reset()
 
     def _stop(self) -> None:
         if self._listen is None or not self._listen.is_open:
@@ -203,16 +207,11 @@ class TMEthernetArm(Arm):
         if not np.all(np.isfinite(v)):
             raise CommandRejectedError(f"command refused: non-finite joint speeds {v!r}")
         self._send_script([set_continue_vjog(np.degrees(v))])
+        self.velocity_loop.sent(v)
 
     def joint_speeds(self, q: np.ndarray, q_prev: np.ndarray, q_meas: np.ndarray) -> np.ndarray:
-        """rad/s to stream: feed-forward of the target's step plus the position loop on the measured joints,
-        clipped to the speed limits and to what still stops inside the joint range within LIMIT_HORIZON_S."""
-        v = (q - q_prev) / self.dt + self.config.position_gain * (q - q_meas)
-        vmax = self.limits.velocity * self.speed_scale
-        v = np.clip(v, -vmax, vmax)
-        room_up = np.maximum(self.limits.upper - q_meas, 0.0) / LIMIT_HORIZON_S
-        room_down = np.maximum(q_meas - self.limits.lower, 0.0) / LIMIT_HORIZON_S
-        return np.clip(v, -room_down, room_up)
+        """rad/s to stream for target `q` (see `VelocityLoop`)."""
+        return self.velocity_loop.speeds(q, q_prev, q_meas)
 
     # ----------------------------------------------------------------------------- helpers
     def _open_slave(self) -> None:

@@ -16,18 +16,25 @@ class TMEthernetConfig:
     host: str
     slave_port: int = 5891  # Ethernet Slave: the data table broadcast ($TMSVR)
     listen_port: int = 5890  # Listen node: scripts ($TMSCT) and status ($TMSTA)
+    # The controller's own Modbus table (joint angles, error, E-stop, running) read as a cross-check of the
+    # Ethernet Slave's by doctor, status and arm(); None: the cell has no Modbus server to read (route B needs
+    # none: enabling it is a separate TMflow switch, so the check is asked for, not assumed).  TM's is 502.
+    modbus_port: int | None = None
     connect_timeout_s: float = 5.0  # per socket connect, and for the first data table to arrive
     link_lost_after_s: float = 1.0  # no table for this long: the link is lost (TM's own drivers use 1 s)
     # While armed, no new table for this long stops the arm (StaleDataError): moving on frozen state for
     # TM's 1 s would be 64 periods blind.  A few broadcast periods, so one late or merged packet passes.
     stale_after_s: float = 0.06
     reply_timeout_s: float = 1.0  # arm(): wait this long for the Listen node's answers
-    # Position loop on the host: joint speed = feed-forward + position_gain * (target - measured) [1/s].
-    # The feed-forward alone makes the controller's integrated target the streamed one; the gain only
-    # corrects the drift of speeds applied for a jittered period.  A stiffer loop integrates the tracking
-    # error in contact, where the impedance law expects a position servo: at 4-20 1/s the wipe's force
-    # overshot (101-110 N) and never settled at 15.6 ms; at 1 1/s it settles as over Modbus.
-    position_gain: float = 1.0
+    # Position loop on the host: joint speed = feed-forward + position_gain * (target - joints ahead) [1/s].
+    # The feed-forward alone makes the controller's integrated target the streamed one; the gain corrects
+    # what timing does to it (a speed applied for a late or missed period, one clipped at a limit).
+    position_gain: float = 0.3
+    # Periods from a speed's send until the broadcast shows its effect: the loop's "joints ahead" add the
+    # speeds sent over these periods.  2 with no queueing (the table is one period old and the servo
+    # interpolates over one), plus the periods of doctor's command round trip beyond its first.  Counted
+    # short, the gain pushes again for motion already on its way and a contact force rings.
+    command_latency_periods: int = 2
 
     def validate(self, where: str = "tm_ethernet") -> None:
         """ConfigError naming the first bad field."""
@@ -37,6 +44,12 @@ class TMEthernetConfig:
             require(1 <= value <= 65535, join(where, name), f"must lie in 1-65535, got {value}")
         require(self.slave_port != self.listen_port, join(where, "listen_port"),
                 f"must differ from slave_port ({self.slave_port})")
+        if self.modbus_port is not None:
+            require(1 <= self.modbus_port <= 65535, join(where, "modbus_port"),
+                    f"must lie in 1-65535 (TM's Modbus server: 502), or be null for no cross-check, got "
+                    f"{self.modbus_port}")
+            require(self.modbus_port not in (self.slave_port, self.listen_port), join(where, "modbus_port"),
+                    f"must differ from slave_port ({self.slave_port}) and listen_port ({self.listen_port})")
         require(0 < self.connect_timeout_s <= 60, join(where, "connect_timeout_s"),
                 f"must lie in (0, 60] s, got {self.connect_timeout_s}")
         require(0.05 <= self.link_lost_after_s <= 10, join(where, "link_lost_after_s"),
@@ -49,6 +62,8 @@ class TMEthernetConfig:
                 f"must lie in (0, 30] s, got {self.reply_timeout_s}")
         require(0 <= self.position_gain <= 20, join(where, "position_gain"),
                 f"must lie in [0, 20] 1/s, got {self.position_gain}")
+        require(0 <= self.command_latency_periods <= 10, join(where, "command_latency_periods"),
+                f"must lie in 0..10 periods (doctor's command round trip), got {self.command_latency_periods}")
 
     def check_period(self, dt: float, where: str = "tm_ethernet") -> None:
         """Stale data is a few control periods at least: a shorter limit trips on the broadcast's jitter."""

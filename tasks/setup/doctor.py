@@ -22,6 +22,7 @@ from drivers.interfaces import JointLimits
 from drivers.tm5.ethernet import TMEthernetArm
 from drivers.tm5.ethernet_config import TMEthernetConfig
 from drivers.tm5.modbus import TM5ModbusArm
+from drivers.tm5.table_check import check_arm
 from drivers.wacoh.driver import WacohSensor
 
 log = logging.getLogger(__name__)
@@ -31,6 +32,7 @@ LIMIT_MARGIN_RAD = math.radians(2.0)  # a reading this far past a joint limit is
 HEARTBEAT_S = 0.5  # the robot counter must advance within this
 # A command that takes longer than this many control periods to pass the Listen node's queue acts too late
 # for the impedance loop closed through it.
+LATENCY_BASE_PERIODS = 2  # the broadcast's age and the servo's interpolation, one period each
 ROUND_TRIP_PERIODS = 4
 RATE_WINDOW_S = 1.0  # the state stream is watched this long to measure its rate and jitter
 # The measured rate may fall this much short of 1/period before the check fails: a one-second window
@@ -130,16 +132,28 @@ class Doctor:
             "set the Ethernet Slave's Communication Mode to BINARY and its transmit table to TM's "
             "Data_Table_Setting_TM_ROS_Default.xml (or tick Joint_Angle, Joint_Speed, Joint_Torque, Robot_Error, "
             "ESTOP, Project_Run by hand)"), run=reach)
-        return self._step("joint_data", self._register_map, (
+        data = self._step("joint_data", self._register_map, (
             "the table's joint items do not read as TM5-700 joint data (degrees, deg/s, mN·m): check the items "
             "and their types in the Data Table Setting"), run=table)
+        off = isinstance(self.arm, TMEthernetArm) and self.arm.config.modbus_port is None
+        self._step("modbus_cross_check", self._modbus_cross_check, (
+            "unreadable: turn on the controller's Modbus TCP server (TMflow: Setting > Connection > Modbus) and "
+            "check devices.arm.settings.modbus_port (TM's is 502); disagreeing joints: another machine answers on "
+            "that port, or the Ethernet Slave's table is not this controller's joints (check its Joint_Angle "
+            "item); the E-stop flag alone disagreeing on a healthy arm: register 7208's meaning is uncertain "
+            "(docs tm5-700.md section 3); or set modbus_port: null to go without the cross-check (arming too)"),
+            run=data and not off, skip_reason=(
+                "not run: devices.arm.settings.modbus_port is null (no Modbus table to cross-check against)"
+                if off else None))
+        return data
 
     # ------------------------------------------------------------------------------------ plumbing
-    def _step(self, name: str, fn: Callable[[], str], fix: str, run: bool = True) -> bool:
+    def _step(self, name: str, fn: Callable[[], str], fix: str, run: bool = True,
+              skip_reason: str | None = None) -> bool:
         if not run:
             no_sensor = name.startswith("sensor_") and self.sensor is None
-            self.checks.append(Check(name, "skipped", "not run: this cell has no F/T sensor" if no_sensor
-                                     else "not run: an earlier check failed"))
+            self.checks.append(Check(name, "skipped", skip_reason or (
+                "not run: this cell has no F/T sensor" if no_sensor else "not run: an earlier check failed")))
             return False
         try:
             detail = fn()
@@ -172,6 +186,12 @@ class Doctor:
         assert not optional, f"{detail}; missing {', '.join(optional)}: the cell cannot see E-stop and errors"
         return detail
 
+    def _modbus_cross_check(self) -> str:
+        assert isinstance(self.arm, TMEthernetArm)
+        check = check_arm(self.arm)
+        assert check.agrees, check.summary()
+        return check.summary()
+
     def _listen_node(self) -> str:
         assert isinstance(self.arm, TMEthernetArm)
         status = self.arm.probe_listen_node()
@@ -181,10 +201,18 @@ class Doctor:
     def _round_trip(self) -> str:
         assert isinstance(self.arm, TMEthernetArm)
         ms = self.arm.command_round_trip() * 1e3
-        detail = f"QueueTag to done in {ms:.1f} ms ({ms / (self.s.period_s * 1e3):.1f} control periods)"
+        periods = ms / (self.s.period_s * 1e3)
+        detail = f"QueueTag to done in {ms:.1f} ms ({periods:.1f} control periods)"
         assert ms <= ROUND_TRIP_PERIODS * self.s.period_s * 1e3, (
             f"{detail}: over {ROUND_TRIP_PERIODS} periods, commands would act too late for force control")
-        return detail
+        # The velocity loop predicts across the queue's periods plus the table's age and the servo's
+        # interpolation (one period each): counted short, a contact force rings.  A round trip takes one
+        # period without any queue (the tag runs on the next servo cycle), so only the periods beyond count.
+        needed = LATENCY_BASE_PERIODS + max(0, int(np.ceil(periods - 1.5)))
+        have = self.arm.config.command_latency_periods
+        assert have >= needed, (f"{detail}: devices.arm.settings.command_latency_periods is {have}, this arm "
+                                f"needs {needed} (2 + the round trip's periods beyond its first)")
+        return f"{detail}; command_latency_periods {have} covers it"
 
     def _connect(self) -> str:
         assert isinstance(self.arm, TM5ModbusArm)
