@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -27,8 +28,17 @@ DEMO_PATH = [[0.0, 0.0, 0.0], [0.0, 0.15, 0.0], [0.08, 0.15, -0.05], [0.08, 0.0,
 
 
 def _wrapper(cfg: CellConfig, robot: RobotModel, force_source: str) -> Any:
+    """The cell as hand guiding runs on it: its force source (the virtual sensor with the guiding's own
+    settings, `tasks.hand_guide.virtual_sensor`) and the collision guard (the cell's settings)."""
+    from tasks.hand_guide import guiding_sensor, load_hand_guide_config
+
+    where = f"{cfg.source}: tasks.hand_guide"
+    hcfg = load_hand_guide_config(cfg.tasks.get("hand_guide"), where)
+    sensor = guiding_sensor(cfg.virtual_sensor, TOOL, hcfg.virtual_sensor, f"{where}.virtual_sensor")
+    guiding = replace(cfg, virtual_sensor=sensor)
+
     def wrap(cell: OpenCell) -> OpenCell:
-        return with_guard(cfg, TOOL, make_force_source(cfg, force_source, TOOL, cell, robot), robot)
+        return with_guard(cfg, TOOL, make_force_source(guiding, force_source, TOOL, cell, robot), robot)
 
     return wrap
 

@@ -7,13 +7,16 @@ tool comes to rest after it was moved at least `teach_min_move_m` (for `--teach`
 
 from __future__ import annotations
 
+import collections
 import enum
 import logging
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
+from cell.config import ToolSensorSettings, VirtualSensorConfig
 from cell.control.loop import Command, Observation
 from cell.control.trajectory import JointMove, tool_down_pose
 from cell.model.robot import RobotModel
@@ -39,11 +42,27 @@ class HandGuideConfig:
     damping_ns_per_m: list[float] = field(default_factory=lambda: [60.0, 60.0, 60.0])  # virtual damping
     deadband_n: float = 3.0  # |F| under this moves nothing: above the virtual sensor's error at rest
     max_speed_mps: float = 0.15
+    # Coming to rest, the joints stick holding the kinetic friction they had, which the model (no friction at
+    # zero speed) reads as the hand still pushing along the last motion for a few tenths of a second: for
+    # `rest_hold_s` after the tool stopped, only a force above `restart_n` moves it again (0: off).
+    rest_hold_s: float = 0.3
+    restart_n: float = 10.0
     brake_mps2: float = 1.0  # deceleration to rest on release
     # The admittance's acceleration cap: the virtual sensor reads a fast arm's inertial torques as force
     # (its model's error grows with acceleration), which a light virtual mass would then chase.
     max_accel_mps2: float = 5.0
     max_force_n: float = 30.0  # a guiding force above this stops the arm
+    # The arm's own acceleration read back as a hand force: the virtual sensor's momentum observer gets the
+    # joint torques a period after the positions, so when the arm accelerates it reads about
+    # `inertia_readback` of the arm's inertial force (Cartesian inertia of the controller's model, rotor
+    # inertia included, times the commanded acceleration) against the motion, `inertia_readback_periods`
+    # control periods after the command, then relaxes at the observer's bandwidth (`inertia_readback_decay_per_s`).
+    # The task commands that acceleration, so it adds the predicted reading back before using the force
+    # (0: off).  Uncompensated it closes a loop of gain inertia_readback * inertia / mass_kg with a two-period
+    # delay, which rings at the control rate for a light virtual mass.
+    inertia_readback: float = 0.0
+    inertia_readback_periods: int = 2
+    inertia_readback_decay_per_s: float = 10.0
     workspace_min: list[float] = field(default_factory=lambda: [0.2, -0.45, 0.1])
     workspace_max: list[float] = field(default_factory=lambda: [0.65, 0.35, 0.5])
     start_xyz: list[float] = field(default_factory=lambda: [0.40, -0.15, 0.25])  # tool down here first
@@ -53,6 +72,8 @@ class HandGuideConfig:
     teach_rest_s: float = 0.8  # a taught pose: at rest this long ...
     teach_rest_speed_mps: float = 0.003  # ... (slower than this) ...
     teach_min_move_m: float = 0.03  # ... and this far from the last taught pose
+    # The virtual sensor's settings while guiding, over the tool's own (`virtual_sensor.by_tool`); unset: theirs.
+    virtual_sensor: ToolSensorSettings = field(default_factory=ToolSensorSettings)
 
     def validate(self, where: str) -> None:
         for name in ("mass_kg", "damping_ns_per_m", "workspace_min", "workspace_max"):
@@ -62,6 +83,9 @@ class HandGuideConfig:
         require(all(m > 0 for m in self.mass_kg), f"{where}.mass_kg", "must be > 0 kg")
         require(all(d > 0 for d in self.damping_ns_per_m), f"{where}.damping_ns_per_m", "must be > 0 N s/m")
         require(0 < self.deadband_n < self.max_force_n, f"{where}.deadband_n", "must lie in (0, max_force_n)")
+        require(self.rest_hold_s >= 0, f"{where}.rest_hold_s", "must be >= 0 s")
+        require(self.deadband_n <= self.restart_n < self.max_force_n, f"{where}.restart_n",
+                "must lie in [deadband_n, max_force_n)")
         require(0 < self.max_speed_mps <= 0.25, f"{where}.max_speed_mps", "must lie in (0, 0.25] m/s")
         require(self.brake_mps2 > 0 and self.max_accel_mps2 > 0, f"{where}.brake_mps2",
                 "and max_accel_mps2 must be > 0 m/s^2")
@@ -69,10 +93,42 @@ class HandGuideConfig:
                 f"{where}.workspace_min", "must be below workspace_max on every axis")
         for name in ("tare_time_s", "duration_s", "teach_rest_s", "teach_rest_speed_mps", "teach_min_move_m"):
             require(getattr(self, name) > 0, f"{where}.{name}", "must be > 0")
+        require(0 <= self.inertia_readback <= 1, f"{where}.inertia_readback", "must lie in [0, 1] (0: off)")
+        require(1 <= self.inertia_readback_periods <= 10, f"{where}.inertia_readback_periods", "must lie in 1..10")
+        require(self.inertia_readback_decay_per_s >= 0, f"{where}.inertia_readback_decay_per_s", "must be >= 0 (1/s)")
 
 
 def load_hand_guide_config(raw: dict[str, Any] | None, where: str) -> HandGuideConfig:
     return load_dataclass(HandGuideConfig, raw or {}, where)
+
+
+def guiding_sensor(vs: VirtualSensorConfig, tool: str, own: ToolSensorSettings, where: str) -> VirtualSensorConfig:
+    """The virtual sensor's settings for hand guiding: `tool`'s, with the guiding's own values (`own`) on top;
+    checked as the cell's are (ConfigError naming the field)."""
+    base = vs.for_tool(tool)
+    merged = replace(base, **{k: v for k, v in asdict(own).items() if v is not None})
+    merged.validate(where)
+    return merged
+
+
+class CartesianInertia:
+    """The arm's translational inertia at the TCP with orientation held: the 3x3 block of J^-T M(q) J^-1
+    (base frame), M from a Pinocchio model plus the rotor inertia (the controller's hybrid model's, or the
+    nominal URDF's without rotors)."""
+
+    def __init__(self, robot: RobotModel, model: Any | None = None, rotor: np.ndarray | None = None) -> None:
+        self.robot = robot
+        self.model = model if model is not None else robot.model
+        self.data = self.model.createData()
+        self.rotor = np.zeros(robot.n) if rotor is None else np.asarray(rotor, float)
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        import pinocchio as pin
+
+        M = pin.crba(self.model, self.data, q)
+        M = np.triu(M) + np.triu(M, 1).T + np.diag(self.rotor)
+        Ji = np.linalg.inv(self.robot.tcp_jacobian(q))
+        return (Ji.T @ M @ Ji)[:3, :3]
 
 
 class HandGuideTask(MachineTask):
@@ -82,8 +138,16 @@ class HandGuideTask(MachineTask):
     tared: Trigger
     finished: Trigger
 
-    def __init__(self, cfg: HandGuideConfig, robot: RobotModel, dt: float, q_home: np.ndarray) -> None:
+    def __init__(self, cfg: HandGuideConfig, robot: RobotModel, dt: float, q_home: np.ndarray,
+                 inertia: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
         self.cfg = cfg
+        self.inertia = inertia if inertia is not None else CartesianInertia(robot)
+        # The commanded inertial forces of the last `inertia_readback_periods` periods (newest last) and the
+        # low-pass, at the decay rate, of the ones before.
+        self._inertial: collections.deque[np.ndarray] = collections.deque(
+            [np.zeros(3)] * cfg.inertia_readback_periods, maxlen=cfg.inertia_readback_periods)
+        self._inertial_lp = np.zeros(3)
+        self.readback = np.zeros(3)
         self.robot = robot
         self.dt = dt
         super().__init__(GuideState.MOVE_TO_START, [
@@ -99,6 +163,7 @@ class HandGuideTask(MachineTask):
         self.peak_force = 0.0
         self.taught: list[list[float]] = []  # taught TCP positions [m]
         self._rest_t = 0.0
+        self._hold_t = 0.0  # time left of the rest hold (rest_hold_s)
         self._moved_since_taught = False
         self.stop_force_n: float | None = None
         start = tool_down_pose(np.asarray(cfg.start_xyz, float))
@@ -148,6 +213,8 @@ class HandGuideTask(MachineTask):
         f = -(R @ np.asarray(obs.wrench.force, float))
         if not np.all(np.isfinite(f)):
             f = np.zeros(3)  # a missing reading: brake as on release (the safety monitor counts them)
+        elif c.inertia_readback > 0:
+            f = f + self.readback
         norm = float(np.linalg.norm(f))
         self.peak_force = max(self.peak_force, norm)
         if norm > c.max_force_n:
@@ -155,13 +222,18 @@ class HandGuideTask(MachineTask):
             self.fail_because(f"guiding force {norm:.1f} N above the limit {c.max_force_n:g} N: arm stopped")
             self.v[:] = 0.0
             return f
+        v_before = self.v.copy()
         # The deadband on the force's magnitude keeps its direction (an axis-wise band would bend it).
         f_eff = f * max(0.0, 1.0 - c.deadband_n / norm) if norm > 0 else f
-        if norm <= c.deadband_n:
+        self._hold_t = max(0.0, self._hold_t - self.dt)
+        band = c.restart_n if self._hold_t > 0 else c.deadband_n
+        if norm <= band:
             # Released: brake to rest, whatever the virtual mass would coast.
             speed = float(np.linalg.norm(self.v))
             if speed > 0:
                 self.v *= max(0.0, speed - c.brake_mps2 * self.dt) / speed
+                if not np.any(self.v):
+                    self._hold_t = c.rest_hold_s
         else:
             a = (f_eff - self.damping * self.v) / self.mass
             na = float(np.linalg.norm(a))
@@ -175,8 +247,20 @@ class HandGuideTask(MachineTask):
         clipped = np.clip(p, self.lo, self.hi)
         self.v[clipped != p] = 0.0  # at the workspace's wall: stop along that axis
         self.ref.translation = clipped
+        self._predict_readback(obs, (self.v - v_before) / self.dt)
         self._teach(obs)
         return f
+
+    def _predict_readback(self, obs: Observation, a_cmd: np.ndarray) -> None:
+        """The part of the next reading that is the arm's own commanded acceleration (see `inertia_readback`):
+        the inertial force of `inertia_readback_periods` ago, less its low-pass at the observer's bandwidth."""
+        c = self.cfg
+        if c.inertia_readback <= 0:
+            return
+        self._inertial.append(self.inertia(np.asarray(obs.state.q, float)) @ a_cmd)
+        x = self._inertial[0]
+        self.readback = c.inertia_readback * (x - self._inertial_lp)
+        self._inertial_lp += min(1.0, c.inertia_readback_decay_per_s * self.dt) * (x - self._inertial_lp)
 
     def _teach(self, obs: Observation) -> None:
         c = self.cfg

@@ -1,7 +1,11 @@
-"""Hand guiding's admittance without a cell: the deadband, braking on release, the stop above the limit,
-taught poses written as a task file that loads."""
+"""Hand guiding: the admittance without a cell (the deadband, braking on release, the stop above the limit,
+taught poses written as a task file that loads), and `--teach` end to end on the simulated cell."""
 
 from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
 
 import numpy as np
 import yaml
@@ -12,6 +16,18 @@ from cell.control.loop import Observation
 from drivers.interfaces import ArmState, ArmStatus, Wrench
 from tasks.hand_guide import HandGuideConfig, HandGuideTask, taught_task_file
 from tasks.primitives.taskfile import load_task_file
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _reuse_artefacts(tool: str) -> None:
+    """The repository's prepared virtual-sensor artefacts for `tool`, copied into the test's own working folder
+    when present (a test runs in a temporary folder): the run then skips `prepare`, which rebuilds them there
+    when they are missing or do not match."""
+    for kind in ("models", "calibration"):
+        src = ROOT / "artifacts" / kind / tool
+        if src.is_dir() and not (Path("artifacts") / kind / tool).exists():
+            shutil.copytree(src, Path("artifacts") / kind / tool)
 
 
 def _drive(task, robot, forces, dt=0.008):
@@ -65,3 +81,28 @@ def test_taught_poses_make_a_task_file_that_loads(tmp_path):
     cfg = load_config(None)
     tf = load_task_file(f, cfg.collision.guarded, cfg.safety.max_tool_force_n)
     assert [s.kind for s in tf.steps] == ["move", "move"]
+
+
+def test_teach_on_the_simulated_cell_writes_a_task_file_that_validates_and_replays(tmp_path, capsys):
+    """`run hand-guide --teach` end to end: the scripted hand rests the tool at the demo path's three
+    corners, the written file loads, and `run task` drives the arm through the taught poses."""
+    from app.commands_hand_guide import DEMO_PATH
+    from main import main
+
+    _reuse_artefacts("wipe")
+    taught = tmp_path / "taught.yaml"
+    code = main(["-q", "run", "hand-guide", "--teach", str(taught), "--cell", "sim", "--json", "--no-record"])
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 0, out.get("reason")
+    cfg = load_config(None)
+    start = np.asarray(HandGuideConfig().start_xyz, float)
+    corners = start + np.asarray(DEMO_PATH[1:], float)
+    poses = np.asarray(out["taught"], float)
+    assert poses.shape == corners.shape
+    assert np.max(np.linalg.norm(poses - corners, axis=1)) < 0.01  # where the hand rested the tool
+    tf = load_task_file(taught, cfg.collision.guarded, cfg.safety.max_tool_force_n)
+    assert [s.kind for s in tf.steps] == ["move"] * len(corners)
+    code = main(["-q", "run", "task", str(taught), "--cell", "sim", "--json", "--no-record"])
+    replay = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 0 and replay["outcome"] == "done", replay.get("reason")
+    assert replay["steps_done"] == len(corners)

@@ -89,8 +89,9 @@ class SpiralSearch(Primitive):
         found = sunk >= p.depth_m or (p.force_below_n is not None and self.reg.t > 0.5 and np.isfinite(f)
                                       and f < p.force_below_n)
         if found:
+            # contact_point_m: where it was found, for a `report` (as a guarded move's contact point).
             self.result = {"found": True, "offset_m": offset.tolist(), "radius_m": float(r), "sunk_m": sunk,
-                           "point_m": tcp.translation.tolist()}
+                           "point_m": tcp.translation.tolist(), "contact_point_m": tcp.translation.tolist()}
             ctx.ref.translation = tcp.translation.copy()
             return StepOut(q=ctx.track(obs), finished=True, log=log)
         if r >= p.max_radius_m:
