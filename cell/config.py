@@ -425,7 +425,7 @@ class CellConfig:
                     f"unknown task '{task}' (known: {', '.join(TASK_SECTIONS)})")
 
 
-TASK_SECTIONS = ("wipe", "peg")  # config sections under `tasks`
+TASK_SECTIONS = ("wipe", "peg", "hand_guide")  # config sections under `tasks` (each validated by its task)
 # A cell config names every section: a missing one would silently run built-in defaults that differ
 # from the shipped file (config/cell.yaml is the documented starting point).
 REQUIRED_SECTIONS = ("robot", "scene", "loop", "safety", "devices", "plant", "virtual_sensor", "collision")

@@ -106,3 +106,18 @@ def test_teach_on_the_simulated_cell_writes_a_task_file_that_validates_and_repla
     replay = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert code == 0 and replay["outcome"] == "done", replay.get("reason")
     assert replay["steps_done"] == len(corners)
+
+
+def test_a_cell_config_sets_hand_guiding_and_a_bad_value_is_one_line(tmp_path):
+    import pytest
+
+    from drivers.errors import ConfigError
+    from tasks.hand_guide import load_hand_guide_config
+
+    path = tmp_path / "cell.yaml"
+    path.write_text(f"base: {ROOT / 'config' / 'cell.yaml'}\ntasks:\n  hand_guide: {{deadband_n: 2.5}}\n",
+                    encoding="utf-8")
+    cfg = load_config(path)
+    assert load_hand_guide_config(cfg.tasks["hand_guide"], "tasks.hand_guide").deadband_n == 2.5
+    with pytest.raises(ConfigError, match=r"tasks\.hand_guide\.deadband_n"):
+        load_hand_guide_config({"deadband_n": 40.0}, "tasks.hand_guide")
