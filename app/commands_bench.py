@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import tempfile
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -218,16 +220,51 @@ def _bench_faults(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _bench_collision(args: argparse.Namespace) -> dict[str, Any]:
-    """Scripted impacts and free motion on the simulated cell, the peg tool's hybrid model detecting."""
+    """Scripted impacts and free motion on the simulated cell, the peg tool's hybrid model detecting; the free
+    motion includes the plans `bench planning` makes and the tasks' own runs."""
+    from app.commands_planning import ARTEFACTS
     from bench.collision import bench_collision
+    from bench.collision_plans import bench_planners
     from cell.sensing.virtual_sensor import load_observer_model
 
     cfg = load_cell_config(args)
     robot = robot_for(cfg, "peg")
     ensure_virtual_artefacts(cfg, "peg", "sim", robot)
     model = load_observer_model(cfg.virtual_sensor.path("model", "peg"), robot, cfg.loop.period_s)
+    planners = bench_planners(robot, cfg, model, ARTEFACTS) if args.free_s > 0 else None
     return bench_collision(cfg, robot, model, impacts=args.impacts, seed=args.seed if args.seed is not None else 0,
-                           free_s=args.free_s, reaction=args.reaction)
+                           free_s=args.free_s, reaction=args.reaction, planners=planners,
+                           task_run=_collision_task_run(cfg) if args.free_s > 0 else None)
+
+
+def _collision_task_run(cfg: Any) -> Any:
+    """(task, seed, payload error kg) -> the task's run summary on the simulated cell with the virtual sensor, the
+    guard recording only (every reaction `monitor`), the tool carrying the payload error."""
+    from dataclasses import replace
+
+    from app.cells import open_cell
+    from app.tasks_registry import TASKS, build_task
+    from bench.collision import set_payload_error
+    from tasks.runner import run_task
+
+    tasks = {k: replace(v, reactions={}) for k, v in cfg.collision.tasks.items()}
+    mcfg = replace(cfg, collision=replace(cfg.collision, reaction="monitor", tasks=tasks))
+
+    def run(name: str, seed: int, payload_kg: float) -> dict[str, Any]:
+        spec = TASKS[name]
+        robot = robot_for(mcfg, spec.tool)
+        ensure_virtual_artefacts(mcfg, spec.tool, "sim", robot)
+        task, max_duration = build_task(name, mcfg, robot, "virtual")
+        holder = open_cell(mcfg, "sim", robot, seed, spec.scene)
+        try:
+            set_payload_error(holder.plant, payload_kg, reset=True)  # type: ignore[attr-defined]
+            cell = with_guard(mcfg, spec.tool, make_force_source(mcfg, "virtual", spec.tool, holder.open(), robot),
+                              robot)
+            return run_task(task, cell, mcfg, robot, max_duration, record=False)
+        finally:
+            holder.close()
+
+    return run
 
 
 def _bench_tool_gravity(args: argparse.Namespace) -> dict[str, Any]:
@@ -360,13 +397,27 @@ def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     b.set_defaults(func=cmd_bench)
 
 
+def _machine_load() -> list[float]:
+    """The 1, 5 and 15 minute load averages ([] where the platform has none)."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return []
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     chosen = BENCHES.get(args.what)
     if chosen is None:
         raise ConfigError(f"bench {args.what}: unknown benchmark")
     if getattr(args, "view", False) and len(args.only if args.only is not None else range(args.trials)) != 1:
         raise ConfigError("bench peg-in-hole --view shows one trial: add --only K (or --trials 1)")
+    t0, load_before = time.perf_counter(), _machine_load()
     out = chosen.run(args)
+    # Every bench says how long it took and what else the cores were doing: a slow run from a slow machine.
+    out.setdefault("bench_wall_s", round(time.perf_counter() - t0, 2))
+    out.setdefault("load_avg_before", load_before)
+    out.setdefault("load_avg_after", _machine_load())
+    out.setdefault("cpu_count", os.cpu_count())
     emit(out, args.json)
     save_bench_summary(out, args.what, chosen.tags(args), args)
     return 0 if chosen.passed(out) else 1
