@@ -244,7 +244,7 @@ def _collision_task_run(cfg: Any) -> Any:
 
     from app.cells import open_cell
     from app.tasks_registry import TASKS, build_task
-    from bench.collision import set_payload_error
+    from bench.collision_cell import set_payload_error
     from tasks.runner import run_task
 
     tasks = {k: replace(v, reactions={}) for k, v in cfg.collision.tasks.items()}

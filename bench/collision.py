@@ -1,12 +1,11 @@
-"""`main.py bench collision`: scripted impacts on rigid and soft obstacles, and free motion at full speed
-for false alarms, on the simulated cell with the collision detector of the hybrid model."""
+"""`main.py bench collision`: scripted impacts on rigid and soft obstacles, and the cell's own motion for false
+alarms, on the simulated cell with the collision detector of the hybrid model."""
 
 from __future__ import annotations
 
 import dataclasses
 import logging
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -14,14 +13,13 @@ import numpy as np
 import pinocchio as pin
 from tqdm import tqdm
 
-from bench.collision_plans import max_tcp_speed, time_optimal_stream
-from cell.collision.guard import build_guard
-from cell.config import CellConfig, CollisionConfig, TaskContactSafety
-from cell.control.loop import Command, ControlLoop, Observation, OpenCell
+from bench.collision_cell import settled_guard
+from bench.collision_free import TaskRun, run_free_motion
+from bench.collision_plans import BenchPlanners
+from cell.config import CellConfig
+from cell.control.loop import Command, ControlLoop, Observation
 from cell.control.safety import SafetyMonitor
 from cell.control.signals import raise_if_interrupted
-from cell.data.excitation.config import ExcitationConfig
-from cell.data.excitation.moves import random_moves
 from cell.model.dynamics.learned import LearnedModel
 from cell.model.robot import RobotModel
 from cell.sensing.ft_source import SensorForceSource
@@ -41,7 +39,6 @@ HOLD_AFTER_S = 0.3  # the plant runs on, held, after a stop: the peak may come a
 REACH = (np.array([0.30, -0.35, 0.22]), np.array([0.55, 0.20, 0.50]))  # start TCP positions [m]
 MAX_TILT = np.radians(30.0)
 BEYOND_M = 0.05  # the scripted line runs this far past the plate's face
-TIME_OPTIMAL_SHARE = 0.25  # of the free motion: time-optimal moves from rest (what `plan` runs)
 
 
 @dataclass
@@ -103,32 +100,6 @@ class LineTask:
         return {"outcome": "done" if not self.reason else "aborted", "reason": self.reason}
 
 
-class StreamTask:
-    """Streams joint targets (free motion)."""
-
-    name = "free_motion"
-    state_name = "move"
-
-    def __init__(self, q: np.ndarray) -> None:
-        self.q = q
-        self.k = 0
-
-    @property
-    def done(self) -> bool:
-        return self.k >= len(self.q)
-
-    def step(self, obs: Observation) -> Command:
-        q = self.q[min(self.k, len(self.q) - 1)]
-        self.k += 1
-        return Command(q=q)
-
-    def abort(self, reason: str) -> None:
-        self.k = len(self.q)
-
-    def summary(self) -> dict[str, Any]:
-        return {"outcome": "done"}
-
-
 class PeakTap:
     """The F/T sensor as the loop's force source, keeping the peak force it read."""
 
@@ -146,6 +117,51 @@ class PeakTap:
 
     def rebias(self) -> None:
         self.inner.rebias()
+
+
+class SpringWatch:
+    """The force the sprung plate's spring and damper carry (k x + c x'), every physics step from the contact's
+    onset: the load on the body region that ISO/TS 15066's model represents by the spring.  The tool-plate
+    contact force (the obstacle's own trace) also carries the light plate's inertia, which at a hard brake
+    shows as one step without contact and the next at twice the force."""
+
+    def __init__(self, obstacle: Obstacle, plant: Plant) -> None:
+        m = plant.model
+        self.obstacle, self.plant = obstacle, plant
+        self.qadr, self.vadr = int(m.jnt_qposadr[obstacle.slide]), int(m.jnt_dofadr[obstacle.slide])
+        self.trace: list[tuple[float, float]] = []
+        self._inner = plant.after_physics_step
+        plant.after_physics_step = self._watch
+
+    def _watch(self) -> None:
+        if self._inner is not None:
+            self._inner()
+        if self.obstacle.onset_t is None:
+            return
+        m, d = self.plant.model, self.plant.data
+        # The slide's axis is the plate's outward normal: compression is -x.
+        f = -(float(m.jnt_stiffness[self.obstacle.slide]) * float(d.qpos[self.qadr])
+              + float(m.dof_damping[self.vadr]) * float(d.qvel[self.vadr]))
+        self.trace.append((float(d.time), f))
+
+
+def contact_figures(trace: list[tuple[float, float]], decided: float, dt: float) -> dict[str, float]:
+    """From a force trace (t, N) and the instant the detector decided: the force then, the largest over the
+    period before it (what the contact had reached), the peak from then on, and whether the force still rose
+    more than one control period after the decision (by over 2 %: the reaction had not cut it)."""
+    t = np.array([x[0] for x in trace])
+    f = np.array([x[1] for x in trace])
+    if t.size == 0:
+        return {}
+    i = int(np.searchsorted(t, decided + 1e-9)) - 1
+    at = float(f[i]) if i >= 0 else 0.0
+    before = f[(t > decided - dt - 1e-9) & (t <= decided + 1e-9)]
+    reached = float(before.max()) if before.size else at
+    after = f[t > decided + 1e-9]
+    upto = f[t <= decided + dt + 1e-9]
+    later = f[t > decided + dt + 1e-9]
+    return {"at": at, "reached": reached, "peak_after": float(after.max()) if after.size else at,
+            "rising": bool(later.size and upto.size and later.max() > 1.02 * upto.max())}
 
 
 def _tool_down(rng: np.random.Generator) -> np.ndarray:
@@ -203,30 +219,6 @@ def _bench_cell_config(cfg: CellConfig) -> CellConfig:
     return dataclasses.replace(cfg, safety=safety, scene=dataclasses.replace(cfg.scene, kind="obstacle"))
 
 
-def _guard(cfg: CellConfig, model: LearnedModel, robot: RobotModel, reaction: str) -> Any:
-    free = {"impact": TaskContactSafety(), "free_motion": TaskContactSafety()}  # no contact expected anywhere
-    coll: CollisionConfig = dataclasses.replace(cfg.collision, enabled=True, reaction=reaction,  # type: ignore[arg-type]
-                                                tasks=free)
-    return build_guard(coll, model, robot, cfg.loop.period_s, "impact", cfg.safety.max_tool_force_n,
-                       np.asarray(cfg.virtual_sensor.wrench_point, float))
-
-
-def _settled_guard(cfg: CellConfig, model: LearnedModel, robot: RobotModel, reaction: str, cell: OpenCell,
-                   plant: Plant, settled: Callable[[], None] | None = None) -> Any:
-    """Let the arm settle at rest (0.3 s), call `settled` (zero a sensor), then give a fresh guard
-    0.15 s of the resting arm and zero its residual there."""
-    for _ in range(int(0.3 / cfg.loop.period_s)):
-        cell.ticker.wait()
-    if settled is not None:
-        settled()
-    guard = _guard(cfg, model, robot, reaction)
-    for _ in range(int(0.15 / cfg.loop.period_s)):
-        guard.detector.update(plant.measured_state())
-        cell.ticker.wait()
-    guard.rebias()
-    return guard
-
-
 def run_impact(cfg: CellConfig, robot: RobotModel, model: LearnedModel, draw: ImpactDraw,
                seed: int, reaction: str = "stop", tool: str = "peg") -> dict[str, Any] | None:
     """One scripted impact, or None when the plate, placed, already touches the arm."""
@@ -242,10 +234,11 @@ def run_impact(cfg: CellConfig, robot: RobotModel, model: LearnedModel, draw: Im
     if obstacle.touching():
         holder.close()
         return None
+    spring = SpringWatch(obstacle, plant) if k is not None else None
     cell = holder.open()
     try:
         tap = PeakTap(cell.force)  # type: ignore[arg-type]
-        guard = _settled_guard(cfg, model, robot, reaction, cell, plant, settled=tap.rebias)
+        guard = settled_guard(cfg, model, robot, reaction, cell, plant, settled=tap.rebias)
         t0 = plant.t
         task = LineTask(robot, draw, cfg.loop.period_s)
         loop = ControlLoop(cell.arm, tap, task, SafetyMonitor(cfg.safety, robot, cfg.loop.period_s), cell.ticker,
@@ -260,14 +253,33 @@ def run_impact(cfg: CellConfig, robot: RobotModel, model: LearnedModel, draw: Im
             guard.detector.update(plant.measured_state())
             fast_peak = max(fast_peak, float(np.linalg.norm(guard.detector.force)))
             tap.read(plant.measured_state())
+        force_at_end = obstacle.force()  # what the reaction left pressing on the plate
     finally:
         holder.close()
     det = guard.last
     onset = obstacle.onset_t
+    dt = cfg.loop.period_s
     latency = force_at_detection = None
+    extra: dict[str, Any] = {}
+    if onset is not None:
+        extra["force_at_end_n"] = round(force_at_end, 1)
+        # The earliest decision any detector on this loop could make: the first period whose state (one period
+        # old: the torque-sensing latency) was sampled after the onset.  The contact force then is a floor.
+        first = t0 + np.ceil((onset + dt - t0) / dt - 1e-9) * dt
+        floor = obstacle.force_at(first)
+        extra["force_at_first_decision_n"] = None if floor is None else round(floor, 1)
     if det is not None and onset is not None:
         latency = (t0 + det.t) - onset
         force_at_detection = obstacle.force_at(t0 + det.t)
+        c = contact_figures(obstacle.trace, t0 + det.t, dt)
+        extra.update(force_reached_at_detection_n=round(c["reached"], 1),
+                     peak_from_detection_n=round(c["peak_after"], 1), rising_after_one_period=c["rising"])
+        if spring is not None and spring.trace:
+            s_ = contact_figures(spring.trace, t0 + det.t, dt)
+            extra.update(spring_force_at_detection_n=round(s_["at"], 1),
+                         spring_peak_n=round(max(f for _, f in spring.trace), 1),
+                         spring_peak_from_detection_n=round(s_["peak_after"], 1),
+                         spring_rising_after_one_period=s_["rising"])
     return {"speed_mps": round(draw.speed, 3), "rigid": k is None, "stiffness_n_per_m": k,
             "payload_error_kg": round(draw.payload_error_kg, 3), "outcome": result.outcome,
             "contact": onset is not None, "detected": det is not None,
@@ -277,64 +289,13 @@ def run_impact(cfg: CellConfig, robot: RobotModel, model: LearnedModel, draw: Im
             "force_at_detection_n": None if force_at_detection is None else round(force_at_detection, 1),
             "peak_force_n": round(max(peak_at_stop, obstacle.peak_n), 1), "peak_until_stop_n": round(peak_at_stop, 1),
             "peak_after_stop_n": round(obstacle.peak_n, 1), "ft_peak_n": round(tap.peak, 1),
-            "fast_peak_n": round(fast_peak, 1), "joints": det.joints if det else []}
-
-
-def run_free_motion(cfg: CellConfig, robot: RobotModel, model: LearnedModel, seconds: float, seed: int,
-                    chunk_s: float = 120.0, tool: str = "peg",
-                    time_optimal_share: float = TIME_OPTIMAL_SHARE) -> dict[str, Any]:
-    """Random point-to-point moves at the cell's full allowed speed, then (the last `time_optimal_share`)
-    time-optimal moves from rest as `plan` makes them, in chunks with a payload error each; every
-    detection is a false alarm (the guard only records them)."""
-    dt = cfg.loop.period_s
-    rng = np.random.default_rng(seed + 7919)
-    alarms: list[dict[str, Any]] = []
-    played = 0.0
-    max_ratio = {"random": 0.0, "time_optimal": 0.0}
-    chunk = 0
-    random_s = seconds * (1.0 - time_optimal_share)
-    fast_cfg = dataclasses.replace(cfg, safety=dataclasses.replace(
-        cfg.safety, max_tcp_speed=max(cfg.safety.max_tcp_speed, max_tcp_speed())))
-    with tqdm(total=round(seconds), unit="sim s", desc="free motion", leave=False) as bar:
-        while played < seconds - 1e-9:
-            kind = "random" if played < random_s - 1e-9 else "time_optimal"
-            want = min(chunk_s, (random_s if kind == "random" else seconds) - played)
-            if kind == "random":
-                plan = random_moves(robot, cfg, ExcitationConfig(), dt, 1, max(2, int(want / 2.0)), [1.0],
-                                    seed=seed * 1000 + chunk)
-                q = np.vstack([s.q for s in plan.segments])[: int(round(want / dt))]
-                start, run_cfg = plan.start, cfg
-            else:
-                q = time_optimal_stream(robot, cfg, model, want, seed * 1000 + chunk)
-                start, run_cfg = q[0], fast_cfg
-            holder = make_sim_cell(run_cfg, robot.limits, seed=seed + chunk, scene_kind="obstacle", tool=tool)
-            obstacle = Obstacle(holder.plant)
-            error = float(rng.uniform(-0.5, 0.5))
-            obstacle.set_payload_error(error)
-            holder.plant.reset(start)
-            cell = holder.open()
-            try:
-                guard = _settled_guard(run_cfg, model, robot, "monitor", cell, holder.plant)
-                loop = ControlLoop(cell.arm, cell.force, StreamTask(q), SafetyMonitor(run_cfg.safety, robot, dt),
-                                   cell.ticker, None, dt, len(q) * dt + 1.0, guard=guard)
-                result = loop.run()
-            finally:
-                holder.close()
-            raise_if_interrupted(result.outcome)
-            if result.outcome != "done":
-                log.warning("free motion chunk %d ended %s: %s", chunk, result.outcome, result.reason)
-            for d in guard.stats.detections:
-                alarms.append({"chunk": chunk, "motion": kind, "payload_error_kg": round(error, 3), **d})
-            max_ratio[kind] = max(max_ratio[kind], guard.stats.max_free_ratio)
-            played += len(q) * dt
-            bar.update(round(len(q) * dt))
-            chunk += 1
-    return {"seconds": round(played, 1), "alarms": alarms, "max_ratio": round(max(max_ratio.values()), 3),
-            "max_ratio_time_optimal": round(max_ratio["time_optimal"], 3)}
+            "fast_peak_n": round(fast_peak, 1), "joints": det.joints if det else [],
+            "reaction": guard.stats.reactions[-1] if guard.stats.reactions else None, **extra}
 
 
 def bench_collision(cfg: CellConfig, robot: RobotModel, model: LearnedModel, impacts: int = 40, seed: int = 0,
-                    free_s: float = 600.0, reaction: str = "stop", tool: str = "peg") -> dict[str, Any]:
+                    free_s: float = 600.0, reaction: str = "stop", tool: str = "peg",
+                    planners: BenchPlanners | None = None, task_run: TaskRun | None = None) -> dict[str, Any]:
     wall0 = time.perf_counter()
     bcfg = _bench_cell_config(cfg)
     rng = np.random.default_rng(seed)
@@ -352,8 +313,11 @@ def bench_collision(cfg: CellConfig, robot: RobotModel, model: LearnedModel, imp
         log.info("impact %d: %s", i, r)
     free: dict[str, Any] = {"seconds": 0.0, "alarms": [], "max_ratio": 0.0}
     if free_s > 0:
-        free = run_free_motion(bcfg, robot, model, free_s, seed, tool=tool)
-    return summarise(trials, free, seed, time.perf_counter() - wall0)
+        free = run_free_motion(bcfg, robot, model, free_s, seed, tool=tool, planners=planners, task_run=task_run)
+    out = summarise(trials, free, seed, time.perf_counter() - wall0)
+    if planners is not None:
+        out["free_motion_planners"] = planners.sources
+    return out
 
 
 def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wall_s: float) -> dict[str, Any]:
@@ -367,8 +331,12 @@ def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wal
 
     def p95(rows: list[dict[str, Any]], key: str, q: float = 95.0) -> float | None:
         """The q-th percentile of `key` over `rows` (95th unless told), None where none has it."""
-        vals = [t[key] for t in rows if t[key] is not None]
+        vals = [t[key] for t in rows if t.get(key) is not None]
         return float(np.percentile(vals, q)) if vals else None
+
+    def over(rows: list[dict[str, Any]], peak: str, base: str) -> list[dict[str, Any]]:
+        """Per impact: the peak from the decision on over the force the contact had reached when it was made."""
+        return [{"r": t[peak] / t[base]} for t in rows if t.get(peak) is not None and (t.get(base) or 0.0) > 1.0]
 
     rigid = [t for t in hits if t["rigid"]]
     soft = [t for t in hits if not t["rigid"]]
@@ -389,6 +357,22 @@ def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wal
         "peak_force_n_p95": float(np.percentile(peaks, 95)) if peaks else None,
         "peak_force_n_p95_rigid": p95(rigid, "peak_force_n"),
         "peak_force_n_p95_soft": p95(soft, "peak_force_n"),
+        # The contact force when the first period that could see the contact decided (its state, one period old,
+        # sampled after the onset): what no detector on this loop can go under.
+        "force_at_first_decision_n_p95_soft": p95(soft, "force_at_first_decision_n"),
+        "force_at_first_decision_n_median_soft": p95(soft, "force_at_first_decision_n", q=50.0),
+        # What the reaction did: the peak from the decision on over the force the contact had reached by then (its
+        # largest over the period before the decision), and the impacts whose force still rose more than one
+        # control period after the decision.
+        "peak_over_detection_p95_soft": p95(over(soft, "peak_from_detection_n", "force_reached_at_detection_n"), "r"),
+        "rising_after_one_period_soft": sum(bool(t.get("rising_after_one_period")) for t in soft),
+        # The same on the spring the sprung plate stands on (the load on the body region it models).
+        "spring_force_at_detection_n_median_soft": p95(soft, "spring_force_at_detection_n", q=50.0),
+        "spring_force_at_detection_n_p95_soft": p95(soft, "spring_force_at_detection_n"),
+        "spring_peak_n_p95_soft": p95(soft, "spring_peak_n"),
+        "spring_peak_over_detection_p95_soft": p95(over(soft, "spring_peak_from_detection_n",
+                                                        "spring_force_at_detection_n"), "r"),
+        "spring_rising_after_one_period_soft": sum(bool(t.get("spring_rising_after_one_period")) for t in soft),
         "ft_peak_n_p95_rigid": p95(rigid, "ft_peak_n"),
         "peak_force_n_max": float(np.max(peaks)) if peaks else None,
         "peak_force_n_rigid_025": float(np.max(rigid_025)) if rigid_025 else None,
@@ -401,6 +385,8 @@ def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wal
         "free_motion_s": free["seconds"],
         "free_motion_max_ratio": free["max_ratio"],
         "free_motion_max_ratio_time_optimal": free.get("max_ratio_time_optimal"),
+        "free_motion_max_ratio_by_kind": free.get("max_ratio_by_kind", {}),
+        "free_motion_cut_short": free.get("cut_short", []),
         "per_impact": trials,
         "wall_time_s": round(wall_s, 1),
     }

@@ -1,25 +1,37 @@
-"""Time-optimal free motion for `bench collision`'s false-alarm run: the moves `main.py plan` makes
-(TOPP-RA on the hybrid model's torque limits, full acceleration from rest) between random
-collision-free poses, as one stream of joint targets."""
+"""The planned free motion of `bench collision`'s false-alarm run: time-optimal moves between random poses, and
+the plans `bench planning` makes (time-optimal on the model, kinematic, PPO) on its own kind of paths."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from bench.planning import random_paths
+from cell.collision.geometry import CollisionChecker
 from cell.config import CONFIG_DIR, CellConfig
 from cell.data.excitation.config import ExcitationConfig
 from cell.data.excitation.moves import random_moves
 from cell.model.dynamics.learned import LearnedModel
 from cell.model.robot import RobotModel
-from cell.planning.planner import PlanningError, ToppraPlanner, toppra_terms
+from cell.planning.planner import KinematicPlanner, Planner, PlanningError, ToppraPlanner, toppra_terms
+from cell.planning.ppo import load_policy
+from cell.planning.ppo_planner import PpoPlanner, PpoSettings, load_or_train
+from cell.planning.speed_env import obs_dim
 from tasks.setup.plan import load_plan_file
 
 REST_S = 0.25  # at rest between moves: each move starts from standstill, the hardest start
 log = logging.getLogger(__name__)
 
 TORQUE_SCALE = 0.8  # of the planning limit: the scale `plan` validates its first run at
+# Without a stored `bench planning` policy the bench trains a small one of its own (about 10 s on a core):
+# fewer updates than `bench planning`'s 300, so its plans are slower and nearer the model's middle ground.
+FAST_PPO_UPDATES = 30
 
 
 def max_tcp_speed() -> float:
@@ -53,3 +65,87 @@ def time_optimal_stream(robot: RobotModel, cfg: CellConfig, model: LearnedModel,
         stream += [traj.q, np.repeat(b[None, :], rest, axis=0)]
         total += len(traj.q) + rest
     return np.vstack(stream)[: int(round(seconds / dt))]
+
+
+@dataclass
+class BenchPlanners:
+    """The three planners `bench planning` runs with the guard, each with its torque scale, and where their
+    settings came from (its stored calibrations and policy, or this bench's fallbacks)."""
+
+    planners: dict[str, tuple[Planner, np.ndarray]]
+    sources: dict[str, str]
+    checker: ToppraPlanner  # draws the paths (joint and workspace limits, collision-free)
+
+
+def _stored(path: Path, key: str) -> Any:
+    """`key` of a `bench planning` calibration file, or None when there is none."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8")).get(key)
+    except (OSError, ValueError):
+        return None
+
+
+def bench_planners(robot: RobotModel, cfg: CellConfig, model: LearnedModel, artefacts: Path | None) -> BenchPlanners:
+    """`bench planning`'s model, kinematic and PPO planners on this arm's model, with the settings that bench
+    stored under `artefacts` (its model trust, its calibrated kinematic accelerations, its PPO policy); where
+    one is missing: `plan`'s first-run scale, the configured acceleration guards, and a small PPO policy
+    trained here (FAST_PPO_UPDATES)."""
+    pcfg = load_plan_file(CONFIG_DIR / "plans.yaml").planner
+    terms = toppra_terms(model)
+    collisions = CollisionChecker.for_scene(robot, dataclasses.replace(cfg.scene, kind="free"))
+    n = robot.n
+    sources: dict[str, str] = {}
+    trust = _stored(artefacts / "model_trust.json", "fraction") if artefacts else None
+    sources["model"] = f"model trust {trust:.3f} (bench planning)" if trust else f"first-run scale {TORQUE_SCALE}"
+    model_planner = ToppraPlanner(robot, model.predict, pcfg, collisions, terms)
+    acc = _stored(artefacts / "kinematic.json", "acceleration_limits") if artefacts else None
+    if acc is not None:
+        acc = np.minimum(np.asarray(acc, float), pcfg.acceleration_limits).tolist()
+        sources["kinematic"] = "calibrated accelerations (bench planning)"
+    else:
+        acc = list(pcfg.acceleration_limits)
+        sources["kinematic"] = "configured acceleration guards (no bench planning calibration)"
+    kinematic = KinematicPlanner(robot, model.predict, dataclasses.replace(pcfg, acceleration_limits=acc), collisions)
+    settings = PpoSettings()
+    policy = None
+    if artefacts is not None and (artefacts / "ppo" / "policy.json").exists():
+        try:
+            policy, meta = load_policy(artefacts / "ppo", obs_dim(settings.env, n), settings.ppo.hidden)
+            sources["ppo"] = (f"bench planning's policy ({meta.get('ppo', {}).get('updates')} updates, trained on "
+                              f"{meta.get('model')})")
+        except Exception as exc:  # an unreadable or other-shaped policy: train the small one instead
+            log.warning("bench collision: %s; training a small PPO policy instead", exc)
+    if policy is None:
+        settings.ppo.updates = FAST_PPO_UPDATES
+        where = (artefacts / "ppo-collision-fast") if artefacts is not None else None
+        if where is not None:
+            policy, meta = load_or_train(where, robot, model.predict, pcfg, terms, settings, "collision bench")
+        else:
+            from cell.planning.ppo_planner import train_policy
+
+            policy, meta = train_policy(robot, model.predict, pcfg, terms, settings, None, "collision bench")
+        sources["ppo"] = f"small policy trained here ({FAST_PPO_UPDATES} updates, {meta.get('training_s', 0):.0f} s)"
+    ppo = PpoPlanner(robot, model.predict, pcfg, policy, settings, collisions, terms)
+    model_scale = np.full(n, trust if trust else TORQUE_SCALE)
+    return BenchPlanners({"model": (model_planner, model_scale), "kinematic": (kinematic, np.ones(n)),
+                          "ppo": (ppo, model_scale)}, sources, model_planner)
+
+
+def planning_paths(planners: BenchPlanners, cfg: CellConfig, count: int, seed: int) -> list[tuple[str, np.ndarray]]:
+    """`count` paths of `bench planning`'s mixed class (multi-waypoint paths across the workspace and short or
+    medium joint 1-3 moves, alternately), inside the cell's workspace box and collision-free."""
+    box = (np.asarray(cfg.safety.workspace_min, float), np.asarray(cfg.safety.workspace_max, float))
+    return random_paths(planners.checker, count, seed, box, path_class="mixed")
+
+
+def plan_stream(planner: Planner, scale: np.ndarray, waypoints: np.ndarray, dt: float) -> np.ndarray | None:
+    """One plan as joint targets at the control period, from and back to rest (None: no feasible plan)."""
+    try:
+        traj = planner.plan(waypoints, scale)
+    except PlanningError as exc:
+        log.info("bench collision: no %s plan for a path (%s)", getattr(planner, "name", "?"), exc)
+        return None
+    t = np.arange(0.0, traj.duration + 1e-9, dt)
+    q = np.array([traj.at(x) for x in t])
+    rest = int(round(REST_S / dt))
+    return np.vstack([np.repeat(q[:1], rest, axis=0), q, np.repeat(q[-1:], rest, axis=0)])

@@ -88,7 +88,7 @@ def _posture(robot, home, xyz):
 
 
 def _run(vs, model, guard, speed=0.05, push_at=None, force=(0.0, 0.0, 0.0), cycles=150, record=None,
-         state="move"):
+         state="move", on_row=None):
     from sim.cell import make_sim_cell
 
     cfg, robot = vs["cfg"], vs["robot"]
@@ -105,7 +105,7 @@ def _run(vs, model, guard, speed=0.05, push_at=None, force=(0.0, 0.0, 0.0), cycl
                         cfg.loop.period_s, state)
         rec = Recorder(record, 50) if record is not None else None
         loop = ControlLoop(cell.arm, cell.force, task, SafetyMonitor(cfg.safety, robot, cfg.loop.period_s),
-                           cell.ticker, rec, cfg.loop.period_s, 10.0, guard=guard)
+                           cell.ticker, rec, cfg.loop.period_s, 10.0, guard=guard, on_row=on_row)
         result = loop.run()
         tcp = robot.tcp_pose(holder.plant.measured_state().q).translation
     finally:
@@ -141,6 +141,28 @@ def test_thresholds_widen_with_speed_sticking_coverage_and_payload(vs, model):
     d2 = _guard(vs, model, payload_uncertainty_kg=0.0).detector
     assert np.allclose(d.thresholds(q, moving, np.zeros(6)), d2.thresholds(q, moving, np.zeros(6)))
     assert d.thresholds(q_away, moving, np.zeros(6))[1] > d2.thresholds(q_away, moving, np.zeros(6))[1] + 0.5
+
+
+def test_a_joint_that_moved_since_the_zeroing_gets_twice_its_friction_band_at_rest(vs, model):
+    from drivers.interfaces import ArmStatus
+
+    d = _guard(vs, model, payload_uncertainty_kg=0.0).detector
+    robot, dt = vs["robot"], vs["cfg"].loop.period_s
+    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    rest = np.zeros(6)
+    tau = np.asarray(robot.rnea(q, rest, rest), float)
+    d.update(ArmState(t=0.0, q=q, dq=rest, tau=tau, status=ArmStatus(), seq=1))
+    d.rebias()
+    still = d.thresholds(q, rest, rest)
+    # Joint 2 travels 0.1 rad (well beyond a hand's push on a held joint), then stops: it may now stick
+    # anywhere in its band, as far as the other edge from where it was zeroed.
+    dq = np.array([0.0, 0.5, 0.0, 0.0, 0.0, 0.0])
+    for k in range(1, 26):
+        d.update(ArmState(t=k * dt, q=q + dq * k * dt, dq=dq, tau=tau, status=ArmStatus(), seq=k + 1))
+    band = model.coverage.static_band
+    assert np.allclose(d.thresholds(q, rest, rest) - still, np.array([0, band[1], 0, 0, 0, 0]), atol=1e-3)
+    d.rebias()  # zeroed again at rest: back to once
+    assert np.allclose(d.thresholds(q, rest, rest), still, atol=1e-3)
 
 
 def test_beyond_the_trained_speeds_the_thresholds_grow_with_speed(vs, model):
@@ -240,6 +262,23 @@ def test_retract_moves_away_along_the_contact_direction_then_stops(vs, model):
     assert moved[0] > 0.6 * retract_m, moved
 
 
+def test_a_moving_reaction_stops_the_arm_first_and_moves_once_at_rest(vs, model):
+    guard = _guard(vs, model, reaction="retract")
+    rows: list[dict[str, Any]] = []
+    # Moving at 0.1 m/s when the push comes: the targets already sent lead on, the controller's stop does not.
+    result, task, _ = _run(vs, model, guard, speed=0.1, push_at=60, force=(0.0, 0.0, 60.0), on_row=rows.append)
+    assert result.outcome == "collision", result.reason
+    assert "stopped (" in result.reason and "retracted" in result.reason
+    braking = [r for r in rows if r.get("reaction") == "brake"]
+    moving = [r for r in rows if r.get("reaction") == "retract"]
+    assert len(braking) >= 2 and moving and braking[-1]["cycle"] < moving[0]["cycle"]
+    # While braking nothing new was sent: the last target stays what it was at the detection.
+    for j in range(6):
+        assert len({r[f"q_cmd{j + 1}"] for r in braking}) == 1
+    # At the first retract target the arm was at rest (the measured joints).
+    assert max(abs(moving[0][f"dq{j + 1}"]) for j in range(6)) <= 0.02 + 1e-9
+
+
 def test_comply_yields_to_the_push_and_monitor_only_records(vs, model):
     guard = _guard(vs, model, reaction="comply")
     result, task, tcp = _run(vs, model, guard, speed=0.0, push_at=40, force=(0.0, 0.0, 40.0))
@@ -323,13 +362,54 @@ def test_bench_collision_measures_impacts_and_free_motion(vs, model):
     assert out["impacts"] == 2 and out["free_motion_s"] == pytest.approx(4.0, abs=0.1)
     for key in ("detection_latency_ms_p95", "peak_force_n_p95", "peak_force_n_max", "false_alarms",
                 "virtual_peak_ratio", "rigid_impact_n_per_mps_p95", "guarded_speed_mps_150n",
-                "force_at_detection_n_median_soft"):
+                "force_at_detection_n_median_soft", "force_at_first_decision_n_p95_soft",
+                "peak_over_detection_p95_soft", "spring_peak_n_p95_soft", "free_motion_max_ratio_by_kind"):
         assert key in out
     for t in out["per_impact"]:
         if t["contact"]:
             assert t["peak_force_n"] > 0 and t["ft_peak_n"] > 0
             assert t["detected"], t
             assert 0.0 <= t["force_at_detection_n"] <= t["peak_force_n"], t
+            # No detector on this loop decides before the first period whose state postdates the contact.
+            assert t["force_at_first_decision_n"] is not None
+            if not t["rigid"]:
+                assert 0.0 < t["spring_force_at_detection_n"] <= t["spring_peak_n"] + 1e-6, t
+
+
+def test_contact_figures_say_whether_the_reaction_cut_the_force():
+    from bench.collision import contact_figures
+
+    dt = 0.008
+    t = np.arange(0.0, 0.06, 0.001)
+    # Rising at 10 N/ms until 20 ms, the decision at 15 ms: held flat from 20 ms, it was cut within a period ...
+    flat = [(x, 10e3 * min(x, 0.020)) for x in t]
+    c = contact_figures(flat, 0.015, dt)
+    assert c["at"] == pytest.approx(150.0) and c["reached"] == pytest.approx(150.0)
+    assert c["peak_after"] == pytest.approx(200.0) and not c["rising"]
+    # ... still rising 30 ms after it: not cut.
+    late = [(x, 10e3 * min(x, 0.045)) for x in t]
+    assert contact_figures(late, 0.015, dt)["rising"]
+    # A step without contact at the decision (the plate bounced): what the contact had reached counts.
+    bounce = [(x, 0.0 if abs(x - 0.015) < 1e-6 else 100.0) for x in t]
+    b = contact_figures(bounce, 0.015, dt)
+    assert b["at"] == 0.0 and b["reached"] == pytest.approx(100.0)
+
+
+@pytest.mark.slow
+def test_bench_collision_free_motion_plays_the_planning_benchs_plans(vs, model, tmp_path):
+    from bench.collision import bench_collision
+    from bench.collision_plans import FAST_PPO_UPDATES, bench_planners
+
+    # No stored `bench planning` artefacts here: the configured guards, the first-run scale, a small PPO policy.
+    planners = bench_planners(vs["robot"], vs["cfg"], model, tmp_path)
+    assert set(planners.planners) == {"model", "kinematic", "ppo"}
+    assert str(FAST_PPO_UPDATES) in planners.sources["ppo"] and "guards" in planners.sources["kinematic"]
+    out = bench_collision(vs["cfg"], vs["robot"], model, impacts=0, seed=4, free_s=8.0, tool="wipe",
+                          planners=planners)
+    kinds = out["free_motion_max_ratio_by_kind"]
+    assert {"random", "time_optimal", "plan_model", "plan_kinematic", "plan_ppo"} <= set(kinds), kinds
+    assert out["false_alarm_events"] == [] and 0.0 < out["free_motion_max_ratio"] < 1.0
+    assert out["free_motion_planners"] == planners.sources
 
 
 def test_over_a_wire_repeated_reads_are_skipped_and_thresholds_widen(vs, model):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+from typing import Any
 
 import pytest
 
@@ -13,7 +14,7 @@ from cell.control import priority
 @pytest.fixture
 def scheduler(monkeypatch):
     """A fake scheduler: records the policy and nice calls; `refuse` lists what it does not permit."""
-    state = {"policy": os.SCHED_OTHER, "nice": 0, "calls": [], "refuse": set()}
+    state: dict[str, Any] = {"policy": os.SCHED_OTHER, "nice": 0, "calls": [], "refuse": set()}
 
     def setscheduler(pid: int, policy: int, param: os.sched_param) -> None:
         if "realtime" in state["refuse"] and policy == os.SCHED_FIFO:

@@ -13,7 +13,8 @@ for steady contact forces and filters short impacts away).  Per joint the thresh
   with the model; wider where the model is less sure, e.g. at high speed), and the physics part's
   level where the training data did not cover the joint's (q, q', q'');
 * band_j: the joint's static friction band (the model's Coulomb level): a joint at or near rest holds
-  whatever torque its friction allows, which no model of the state predicts;
+  whatever torque its friction allows, which no model of the state predicts; twice that for a joint that has
+  moved since the residual was zeroed (its friction may stick as far as the band's other edge);
 * inertia: the relative error of the rigid body's inertial torque (mass errors, and the measured
   torque's latency against the joint positions, which shows while the arm accelerates).  q'' is the
   causal estimate from the measured speeds, q''_cmd the largest commanded acceleration of the last few
@@ -107,6 +108,9 @@ class CollisionDetector:
     TORQUE_WINDOW = 4
     # ... and this share of it, integrated over the time off the period, is the residual's own error.
     WIRE_ALLOWANCE = 1.0
+    # A joint that has travelled this far since the residual was zeroed has moved (a held joint pushed by hand
+    # yields far less): its friction may have stuck elsewhere in its band.
+    MOVED_RAD = 0.05
 
     def __init__(self, model: LearnedModel, robot: RobotModel, dt: float, settings: DetectorSettings,
                  wrench_point: np.ndarray, over_wire: bool = False, exact_steps: bool | None = None) -> None:
@@ -152,6 +156,7 @@ class CollisionDetector:
         self._zeroed = False
         self._over = np.zeros(self.n, np.int64)
         self._force_over = 0
+        self._travel = np.zeros(self.n)  # |q'| integrated since the residual was last zeroed [rad]
         self.residual = np.zeros(self.n)
         self.threshold = np.full(self.n, np.inf)
         self.force = np.zeros(3)
@@ -181,6 +186,7 @@ class CollisionDetector:
         self.observer.rebias()
         self._g_zero = self._payload_gravity(self._q)
         self._zeroed = True
+        self._travel = np.zeros(self.n)
 
     def _payload_gravity(self, q: np.ndarray) -> np.ndarray:
         J = pin.computeFrameJacobian(self._pm, self._pd, q, self._com_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
@@ -216,7 +222,10 @@ class CollisionDetector:
             v_max, edge = self._beyond
             thr += s.sigma_factor * edge * max(0.0, float(np.max(np.abs(dq) / v_max)) - 1.0)
         if s.stick_speed > 0 and self.coverage is not None:
-            thr += self.coverage.static_band * np.maximum(0.0, 1.0 - np.abs(dq) / s.stick_speed)
+            # A joint zeroed at rest held its friction somewhere in its band; one that has moved since may stick
+            # anywhere in it again, as far as the other edge (a hard stop leaves it loaded there): twice the band.
+            band = self.coverage.static_band * np.where(self._travel > self.MOVED_RAD, 2.0, 1.0)
+            thr += band * np.maximum(0.0, 1.0 - np.abs(dq) / s.stick_speed)
         if s.inertia_uncertainty > 0:
             if self._cmd_inertial:
                 inertial = np.max(np.asarray(self._cmd_inertial), axis=0)
@@ -250,6 +259,7 @@ class CollisionDetector:
         self._last = state
         self._q = q
         self.residual = self.observer.update(state)
+        self._travel += np.abs(np.asarray(state.dq, float)) * self.step
         self._meas_inertial.append(np.abs(self.observer.inertial))
         self.threshold = self.margin * self.thresholds(q, np.asarray(state.dq, float), self.observer.acceleration)
         r = self.residual

@@ -1,9 +1,11 @@
 """The control loop's contact safety: runs the collision detector every period and reacts as the task's
 state says (protective stop, retract along the contact direction, comply, or only record).
 
-A reaction that moves (retract, comply) starts from the measured pose, not from the last target: a
-position servo pressed against an obstacle has wound up a lag toward it, and resuming from the target
-would push that lag into the contact.
+A reaction that moves (retract, comply) first stops the arm (the controller's own stop brakes at once, where a
+streamed target reaches the servo a period later, while the targets already sent still lead into the contact),
+then, at rest, re-arms and moves from the measured pose, not from the last target: a position servo pressed
+against an obstacle has wound up a lag toward it, and resuming from the target would push that lag into the
+contact.
 """
 
 from __future__ import annotations
@@ -33,19 +35,27 @@ class CollisionStop(SafetyStopError):
 
 
 class Reaction:
-    """A short motion away from a contact, then a stop: one joint target per period.
+    """A brake, then a short motion away from a contact, then a stop: one joint target per period.
 
-    The direction is fixed at the detection (away from where the tool pushed).  Retract runs along it at
-    a set speed for a set distance; comply runs along it as fast as the contact still pushes that way
-    (the fast force low-passed, times an admittance), for a set time.  The speed changes at a bounded
-    acceleration: a position servo fed jagged targets answers with large feedforward torques."""
+    With `stop_first` the loop stops the arm at the detection and asks `braking` every period; once the
+    measured joints are at rest (or after MAX_BRAKE_PERIODS) the reaction starts from the measured pose and
+    the loop re-arms.  The direction is fixed at the detection (away from where the tool pushed).  Retract
+    runs along it at a set speed for a set distance; comply runs along it as fast as the contact still pushes
+    that way (the fast force low-passed, times an admittance), for a set time.  The speed changes at a
+    bounded acceleration: a position servo fed jagged targets answers with large feedforward torques."""
 
     ACCEL = 1.0  # m/s^2
     FORCE_TIME_CONSTANT = 0.05  # s: the comply's force filter
+    REST_SPEED = 0.02  # rad/s: every measured joint slower than this is at rest after the brake
+    MAX_BRAKE_PERIODS = 12  # the brake is over after this many periods whatever the measured speeds
 
     def __init__(self, kind: str, robot: RobotModel, state: ArmState, direction: np.ndarray, speed: float,
-                 distance: float | None, duration: float | None, dt: float, force_gain: float = 0.0) -> None:
+                 distance: float | None, duration: float | None, dt: float, force_gain: float = 0.0,
+                 stop_first: bool = False) -> None:
         self.kind = kind
+        self.stop_first = stop_first
+        self.braked = 0  # periods spent braking (stop_first)
+        self.brake_done = not stop_first
         self.robot = robot
         self.dt = dt
         self.speed = speed
@@ -60,6 +70,19 @@ class Reaction:
         self.v = 0.0
         self.push = 0.0  # filtered force along the yield direction [N]
         self.done = False
+
+    def braking(self, state: ArmState) -> bool:
+        """Whether the arm is still braking after the stop (nothing is sent then); when the brake ends, the
+        motion starts from this measured pose."""
+        if self.brake_done:
+            return False
+        self.braked += 1
+        if self.braked < 2 or (np.max(np.abs(state.dq)) > self.REST_SPEED and self.braked < self.MAX_BRAKE_PERIODS):
+            return True  # the first measured state after the stop still predates it (one period old)
+        self.brake_done = True
+        self.q = np.array(state.q, float)
+        self.ref = self.robot.tcp_pose(self.q)
+        return False
 
     def step(self, state: ArmState, force: np.ndarray) -> np.ndarray:
         """The next joint target (`force`: the fast tool force, cell convention)."""
@@ -90,9 +113,11 @@ class Reaction:
         return q
 
     def describe(self) -> str:
+        brake = f"stopped ({self.braked * self.dt * 1e3:.0f} ms), " if self.stop_first else ""
         if self.kind == "retract":
-            return f"retracted {self.travelled * 1e3:.1f} mm along {np.round(self.direction, 2).tolist()}, then stopped"
-        return f"complied for {self.t:.2f} s ({self.travelled * 1e3:.1f} mm), then stopped"
+            return (f"{brake}retracted {self.travelled * 1e3:.1f} mm along {np.round(self.direction, 2).tolist()}, "
+                    "then stopped")
+        return f"{brake}complied for {self.t:.2f} s ({self.travelled * 1e3:.1f} mm), then stopped"
 
 
 @dataclass
@@ -188,9 +213,10 @@ class ContactGuard:
             direction = -v / vn if vn > 1e-9 else np.array([0.0, 0.0, 1.0])
         c = self.cfg
         if kind == "retract":
-            return Reaction("retract", self.robot, state, direction, c.retract_speed_mps, c.retract_m, None, self.dt)
+            return Reaction("retract", self.robot, state, direction, c.retract_speed_mps, c.retract_m, None, self.dt,
+                            stop_first=True)
         return Reaction("comply", self.robot, state, direction, c.retract_speed_mps, None, c.comply_time_s, self.dt,
-                        force_gain=c.comply_admittance)
+                        force_gain=c.comply_admittance, stop_first=True)
 
     def _world(self, state: ArmState, force_tool: np.ndarray) -> np.ndarray:
         """A tool-frame force (the detector's, as the F/T sensor reports) in the base frame."""

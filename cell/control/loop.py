@@ -21,7 +21,7 @@ from cell.control.safety import SafetyMonitor
 from cell.control.signals import Terminated
 from cell.data.recorder import Recorder
 from drivers.errors import CellError, DriverError, SafetyStopError
-from drivers.interfaces import Arm, ArmState, Wrench
+from drivers.interfaces import Arm, ArmState, Lifecycle, Wrench
 
 log = logging.getLogger(__name__)
 
@@ -253,8 +253,23 @@ class ControlLoop:
                             if reaction is not None:
                                 reaction_reason = det.describe()
                                 self.task.abort(f"{reaction_reason}: {reaction.kind}")
+                                if reaction.stop_first:
+                                    self.arm.stop()  # the controller's brake acts now; the reaction moves at rest
                     else:
                         self.guard.detector.update(state)
+                if reaction is not None and reaction.braking(state):
+                    # Stopped on purpose: nothing is sent (the state's status reports the stop) until at rest.
+                    self._record(obs, Command(q=q_cmd, log={"reaction": "brake"}), q_cmd, False, truth,
+                                 time.perf_counter() - t0)
+                    cycle += 1
+                    self.ticker.wait()
+                    continue
+                if reaction is not None and reaction.stop_first and self.arm.lifecycle is not Lifecycle.ARMED:
+                    self.arm.arm()  # the stop is acknowledged: the reaction's own motion starts from rest
+                    # A new motion: the commanded-speed check starts from here, not from the last target before
+                    # the stop.
+                    self.safety = SafetyMonitor(self.safety.cfg, self.safety.robot, self.safety.dt)
+                    state = self.arm.read_state()  # its status read before the stop was acknowledged
                 self.safety.check_state(state, truth if truth is not None else wrench)
                 if reaction is not None:
                     assert self.guard is not None
