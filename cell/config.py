@@ -423,6 +423,26 @@ class CellConfig:
         for task in self.tasks:
             require(task in TASK_SECTIONS, join(where, "tasks"),
                     f"unknown task '{task}' (known: {', '.join(TASK_SECTIONS)})")
+        self._check_observer_gains(where)
+
+    def _check_observer_gains(self, where: str) -> None:
+        """Every first-order observer's gain times the control period under 1: a discrete observer
+        r_k = (1 - K dt) r_(k-1) + K dt x_k turns its estimate's sign each period from K dt = 1 on (a
+        touch channel at 110/s rang to +-30 N in free air at 15.6 ms)."""
+        dt = self.loop.period_s
+        vs, det = self.virtual_sensor, self.collision.detector
+        gains: list[tuple[str, float | None]] = [
+            ("collision.detector.observer_gain", det.observer_gain),
+            ("collision.detector.wire_observer_gain", det.wire_observer_gain),
+            ("virtual_sensor.momentum_gain", vs.momentum_gain), ("virtual_sensor.touch_gain", vs.touch_gain)]
+        for tool, own in vs.by_tool.items():
+            gains += [(f"virtual_sensor.by_tool.{tool}.momentum_gain", own.momentum_gain),
+                      (f"virtual_sensor.by_tool.{tool}.touch_gain", own.touch_gain)]
+        for name, k in gains:
+            if k is not None:
+                require(k * dt < 1.0, join(where, name),
+                        f"({k:g} 1/s) times loop.period_s ({dt:g} s) is {k * dt:.2f}: the observer's estimate "
+                        f"alternates sign every period from 1 on; at this period it must be under {1 / dt:.1f} 1/s")
 
 
 TASK_SECTIONS = ("wipe", "peg", "hand_guide")  # config sections under `tasks` (each validated by its task)

@@ -75,6 +75,29 @@ def test_an_empty_or_incomplete_config_is_refused_not_run_on_defaults(tmp_path):
     assert "missing section 'virtual_sensor'" in config_error(write(tmp_path, data))
 
 
+@pytest.mark.parametrize("section, key", [
+    (("collision", "detector"), "observer_gain"),
+    (("virtual_sensor",), "momentum_gain"),
+    (("virtual_sensor", "by_tool", "peg"), "touch_gain"),
+])
+def test_an_observer_gain_that_alternates_at_the_loops_period_is_refused(tmp_path, section, key):
+    data = shipped()
+    data["loop"]["period_s"] = 0.0156
+    data["plant"] = str(Path(__file__).resolve().parents[1] / "config" / "plants" / "tm-ethernet.yaml")
+    data["collision"]["detector"]["observer_gain"] = 50.0  # the others fit this period
+    data["virtual_sensor"]["by_tool"]["peg"]["touch_gain"] = 50.0
+    node = data
+    for name in section:
+        node = node[name]
+    node[key] = 70.0  # 1.09 per period at 15.6 ms (fine at 8 ms: 0.56)
+    message = config_error(write(tmp_path, data))
+    assert f"{'.'.join(section)}.{key}" in message and "under 64.1 1/s" in message
+    data["loop"]["period_s"] = 0.008
+    data["collision"]["detector"]["observer_gain"] = 70.0
+    data["virtual_sensor"]["by_tool"]["peg"]["touch_gain"] = 70.0
+    load_config(write(tmp_path, data))
+
+
 def test_a_typo_in_a_task_section_is_named(tmp_path):
     data = shipped()
     data["tasks"]["wpie"] = data["tasks"].pop("wipe")

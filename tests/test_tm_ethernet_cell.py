@@ -27,7 +27,7 @@ def tm_cell(tmp_path):
         def config(period_s: float) -> Path:
             path = tmp_path / f"cell-{period_s}.yaml"
             path.write_text(
-                f"base: {ROOT / 'config' / 'cell.yaml'}\n"
+                f"base: {ROOT / 'config' / 'tm-ethernet.yaml'}\n"
                 f"loop: {{period_s: {period_s}}}\n"
                 "devices:\n"
                 f"  arm: {{kind: real, settings: {{protocol: tm-ethernet, host: 127.0.0.1, slave_port: "

@@ -168,7 +168,7 @@ def test_status_json_carries_the_cross_check(emulator: TMEthernetEmulator, tmp_p
     with WacohEmulator(lambda: np.zeros(6), noise=0.0) as sensor:
         path = tmp_path / "cell.yaml"
         path.write_text(
-            f"base: {ROOT / 'config' / 'cell.yaml'}\n"
+            f"base: {ROOT / 'config' / 'tm-ethernet.yaml'}\n"
             f"loop: {{period_s: {DT}}}\n"
             "devices:\n"
             f"  arm: {{kind: real, settings: {{protocol: tm-ethernet, host: 127.0.0.1, slave_port: "

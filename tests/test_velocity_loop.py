@@ -86,7 +86,7 @@ def test_doctor_holds_the_latency_setting_to_the_measured_round_trip(tmp_path, c
             WacohEmulator(lambda: np.zeros(6), noise=0.0) as sensor:
         path = tmp_path / "cell.yaml"
         path.write_text(
-            f"base: {ROOT / 'config' / 'cell.yaml'}\n"
+            f"base: {ROOT / 'config' / 'tm-ethernet.yaml'}\n"
             f"loop: {{period_s: {DT}}}\n"
             "devices:\n"
             f"  arm: {{kind: real, settings: {{protocol: tm-ethernet, host: 127.0.0.1, slave_port: "
