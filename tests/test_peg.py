@@ -297,6 +297,27 @@ def test_a_descent_starting_from_rest_keeps_its_full_lead(cfg):
     assert leads[-1] == pytest.approx(d.pc.max_lead_m)
 
 
+
+def test_the_touch_test_on_a_two_reading_mean_ignores_a_ringing_force_but_not_a_touch():
+    # A force source that rings at the control period (signs alternating, here +-20 N in free air) is not a
+    # touch on the mean of two readings, while a touch that bounces on and off the face (0 / 40 N) is, as
+    # on single readings.
+    import pinocchio as pin
+
+    def run(pc: PegConfig, fz: list[float]) -> list[str]:
+        guard = GuardedDescent(pc, 0.0156)
+        pose = pin.SE3(np.eye(3), np.array([0.45, -0.12, 0.06]))
+        return [guard.touch(f, pc.survey_cycles, pose.copy(), pose) for f in fz]
+
+    ringing = [(-1.0) ** k * 20.0 for k in range(12)]
+    bouncing = [0.0, 0.0, 40.0, 0.0, 40.0, 0.0, 40.0]
+    single, mean2 = PegConfig(), PegConfig(touch_mean_cycles=2)
+    assert "touch" in run(single, ringing)
+    assert "touch" not in run(mean2, ringing)
+    assert "touch" in run(single, bouncing) and "touch" in run(mean2, bouncing)
+    with pytest.raises(ConfigError):
+        replace(mean2, touch_mean_cycles=0).validate("tasks.peg")
+
 @pytest.mark.slow
 def test_bench_runs_one_trial_again_and_records_it(capsys):
     # `--only` re-runs trial 1 of a 3-trial bench (the same draws), `--record` logs it; the peak force is

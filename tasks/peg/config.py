@@ -46,6 +46,11 @@ class PegConfig:
     touch_lead_m: float = 0.00002
     touch_force_n: float = 3.0  # ... and then Fz above this (not contact_force_n) on survey/contact_cycles is a touch
     survey_cycles: int = 2  # Fz over contact_force_n on this many cycles of the confirm window: touching
+    # The touch tests read the mean of the last this many Fz readings.  1: the reading itself.  2 cancels a
+    # force source that rings at the control period (signs alternating cycle to cycle; the virtual sensor's
+    # fast touch channel does so at a long period, its gain times the period above 1) while a touch, steady
+    # or bouncing on and off the face, keeps half its peak or more.
+    touch_mean_cycles: int = 1
     survey_confirm_s: float = 0.05  # hold still after a first crossing; no second one in this time: noise
     surveyed_approach_height_m: float = 0.0005  # approach start above the surveyed mouth (known to ~0.1 mm)
     max_hole_tilt_deg: float = 5.0  # the surveyed face tilted further than this: fail (not the expected fixture)
@@ -208,6 +213,7 @@ class PegConfig:
         require(self.probe_settle_s + self.probe_average_s <= self.max_probe_s,
                 f"{where}.max_probe_s", "must cover probe_settle_s + probe_average_s")
         require(self.contact_cycles >= 1, f"{where}.contact_cycles", "must be >= 1")
+        require(1 <= self.touch_mean_cycles <= 4, f"{where}.touch_mean_cycles", "must lie in 1..4")
         require(self.max_probes >= 1 and self.max_realigns >= 0, f"{where}.max_probes", "must be >= 1")
         require(self.min_chord_m > 0 and self.max_chord_retries >= 0, f"{where}.min_chord_m",
                 "must be > 0 (and max_chord_retries >= 0)")

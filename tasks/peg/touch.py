@@ -35,6 +35,7 @@ class GuardedDescent:
         self.pressing = False  # the descent decelerated as on a contact: the lead is cut to touch_lead_m
         self.press_z = 0.0  # the tip's height when it stalled
         self.descend_t = -1.0  # the task time of the last descent step
+        self.fz_window: collections.deque[float] = collections.deque(maxlen=cfg.touch_mean_cycles)  # Fz read
 
     def touch(self, fz: float, cycles: int, ref: pin.SE3, tip: pin.SE3) -> Touch:
         """Touch detection for a guarded move: "free", "hold" (stopped, confirming) or "touch".
@@ -42,8 +43,12 @@ class GuardedDescent:
         The contacts are stiff and bounce (Fz alternates 0 / 40 N from cycle to cycle), and the servo's
         tracking lag goes on pressing: stop at the first crossing (the reference to the measured tip, the
         touch point recorded) and confirm with `cycles` crossings in all within survey_confirm_s; a lone
-        spike (a sensor transient) lets the move go on."""
+        spike (a sensor transient) lets the move go on.  Fz is the mean of the last touch_mean_cycles
+        readings (see PegConfig.touch_mean_cycles)."""
         c = self.cfg
+        if np.isfinite(fz):
+            self.fz_window.append(fz)
+            fz = sum(self.fz_window) / len(self.fz_window)
         # A tip stalled in its descent (see descend) is kinematic evidence of a touch: the wrench need only
         # agree at touch_force_n (the lead cut to touch_lead_m presses with a few N only).
         threshold = c.touch_force_n if self.pressing else c.contact_force_n
@@ -61,6 +66,7 @@ class GuardedDescent:
         if self.touching >= cycles:
             self.touching = 0
             self.pressing = False
+            self.fz_window.clear()  # the next guarded move starts from its own readings
             return "touch"
         return "hold" if self.touching else "free"
 
