@@ -28,7 +28,8 @@ from app.progress import heartbeat
 from app.sensing import FORCE_SOURCES, ensure_virtual_artefacts, make_force_source, with_guard
 from app.tasks_registry import robot_for
 from cell.cliargs import COUNT, float_in, int_in
-from cell.config import REACTIONS, check_task_speeds, load_config
+from cell.collision.config import REACTIONS
+from cell.config import check_task_speeds, load_config
 from cell.control.loop import OpenCell
 from drivers.errors import ConfigError
 

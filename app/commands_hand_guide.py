@@ -15,7 +15,8 @@ from app.commands_cell import run_tags
 from app.common import emit, load_cell_config, save_bench_summary
 from app.sensing import ensure_virtual_artefacts, make_force_source, with_guard
 from app.tasks_registry import robot_for
-from cell.config import CellConfig, TaskContactSafety
+from cell.collision.config import TaskContactSafety
+from cell.config import CellConfig
 from cell.control.loop import OpenCell
 from cell.model.robot import RobotModel
 from drivers.errors import ConfigError

@@ -28,7 +28,7 @@ def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[
     a saved model artefact, or the nominal rigid body (P1)."""
     if path:
         from cell.model.dynamics.artefact import load_model  # the model lab's artefacts
-        from cell.planning.planner import toppra_terms
+        from cell.planning.constraints import toppra_terms
 
         model = load_model(Path(path), robot)
         return model.predict, f"{model.meta.kind} ({path})", toppra_terms(model)
@@ -65,7 +65,7 @@ def kinematic_baseline(cfg: CellConfig, robot: RobotModel, predictor: Any, pcfg:
 
     from app.cells import cell_identity
     from app.commands_planning import ARTEFACTS
-    from cell.planning.planner import KinematicPlanner
+    from cell.planning.baselines import KinematicPlanner
 
     path = ARTEFACTS / "kinematic.json"
     if not path.exists():

@@ -9,8 +9,9 @@ from typing import Any
 
 import numpy as np
 
+from cell.collision.config import CollisionConfig, TaskContactSafety
 from cell.collision.guard import build_guard
-from cell.config import CellConfig, CollisionConfig, TaskContactSafety
+from cell.config import CellConfig
 from cell.control.loop import Command, Observation, OpenCell
 from cell.model.dynamics.learned import LearnedModel
 from cell.model.robot import RobotModel

@@ -19,7 +19,9 @@ from cell.data.excitation.config import ExcitationConfig
 from cell.data.excitation.moves import random_moves
 from cell.model.dynamics.learned import LearnedModel
 from cell.model.robot import RobotModel
-from cell.planning.planner import KinematicPlanner, Planner, PlanningError, ToppraPlanner, toppra_terms
+from cell.planning.baselines import KinematicPlanner
+from cell.planning.constraints import toppra_terms
+from cell.planning.planner import Planner, PlanningError, ToppraPlanner
 from cell.planning.ppo import load_policy
 from cell.planning.ppo_planner import PpoPlanner, PpoSettings, load_or_train
 from cell.planning.speed_env import obs_dim

@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from cell.config import CellConfig, TaskContactSafety
+from cell.collision.config import TaskContactSafety
+from cell.config import CellConfig
 from cell.control.loop import Command, Observation, OpenCell
 from cell.model.robot import RobotModel
 from sim.cell import make_sim_cell

@@ -26,18 +26,10 @@ from bench.planning_calibration import calibrate, calibrate_trust, load_or_calib
 from cell.collision.geometry import CollisionChecker
 from cell.control.signals import raise_if_interrupted
 from cell.model.robot import RobotModel
-from cell.planning.planner import (
-    GeometricPath,
-    KinematicPlanner,
-    Planner,
-    PlannerConfig,
-    PlanningError,
-    TimedTrajectory,
-    ToppraPlanner,
-    ToppraTerms,
-    TorqueFn,
-    UniformScalingPlanner,
-)
+from cell.planning.baselines import KinematicPlanner, UniformScalingPlanner
+from cell.planning.config import PlannerConfig
+from cell.planning.constraints import ToppraTerms
+from cell.planning.planner import GeometricPath, Planner, PlanningError, TimedTrajectory, ToppraPlanner, TorqueFn
 from cell.planning.ppo import load_snapshots
 from cell.planning.ppo_planner import PpoPlanner, PpoSettings, load_or_train
 from cell.planning.speed_env import WORKSPACE_DEG, obs_dim, random_waypoints
@@ -53,6 +45,14 @@ MAX_ROUNDS = 4  # runs per planner and path: the first, then tightened re-runs a
 # `mixed` (the two alternately).
 PATH_CLASSES = ("speed", "torque", "mixed")
 TORQUE_MOVES_DEG = ((20.0, 70.0), (70.0, 120.0))  # per joint 1-3: a short and a medium move
+# One more reference path for the model trust alone: joint 2 accelerates at its torque bound up to its speed
+# cap while joint 1 swings through a reversal.  There the plant's joint-2 torque runs about 0.1 of the motor
+# limit over the model's (a speed-dependent error, which a lower trust shrinks only in part), more than on
+# any other reference path; without it every reference run stayed within the limit at full trust while such
+# moves elsewhere reached the safety stop (docs/notes/planning-history.md).
+TRUST_REFERENCE_DEG = {"reference_j2_fast": [[-2.0, -39.0, 64.0, 40.0, 40.0, -7.0],
+                                             [-63.0, -32.0, 43.0, 56.0, 92.0, -22.0],
+                                             [-26.0, 13.0, 96.0, 75.0, 113.0, -3.0]]}
 
 
 @dataclass
@@ -132,6 +132,12 @@ def reference_set(s: PlanningSetup) -> list[tuple[str, np.ndarray]]:
     return ref + random_paths(checker, CALIBRATION_PATHS, CALIBRATION_SEED, s.workspace, "reference")
 
 
+def trust_reference_set(s: PlanningSetup) -> list[tuple[str, np.ndarray]]:
+    """The model trust's reference paths: the joint-2 move the model under-predicts most first (a failing
+    check ends there), then the shared reference set."""
+    return [(n, np.radians(w)) for n, w in TRUST_REFERENCE_DEG.items()] + reference_set(s)
+
+
 def model_trust(s: PlanningSetup) -> dict[str, Any]:
     """The share of the planning limit the torque-aware planners use on this arm (calibrate_trust; stored)."""
     limit = 1.0 - s.pcfg.torque_margin
@@ -139,9 +145,11 @@ def model_trust(s: PlanningSetup) -> dict[str, Any]:
     key = {"arm": s.arm_identity, "model": s.model_name, "limit_fraction": limit,
            "velocity_fraction": s.pcfg.velocity_fraction, "smoothing_s": s.pcfg.smoothing_s,
            "torque_discretization": s.pcfg.torque_discretization, "start_margin": s.pcfg.start_margin,
-           "start_margin_s": s.pcfg.start_margin_s}
+           "start_margin_s": s.pcfg.start_margin_s, "retiming": s.pcfg.retiming,
+           "exact_smoothing_s": s.pcfg.exact_smoothing_s, "residual": s.pcfg.residual,
+           "tcp_speed_limit": s.pcfg.tcp_speed_limit, "extra_reference_deg": TRUST_REFERENCE_DEG}
     return load_or_calibrate(s.artefacts / "model_trust.json", key,
-                             lambda: calibrate_trust(planner, reference_set(s), s.calibration_run, limit))
+                             lambda: calibrate_trust(planner, trust_reference_set(s), s.calibration_run, limit))
 
 
 def kinematic_limits(s: PlanningSetup) -> dict[str, Any]:

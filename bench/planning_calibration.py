@@ -26,7 +26,8 @@ from tqdm import tqdm
 from cell.control.signals import raise_if_interrupted
 from cell.data.atomic import write_atomic
 from cell.model.robot import RobotModel
-from cell.planning.planner import KinematicPlanner, Planner, PlanningError, TimedTrajectory
+from cell.planning.baselines import KinematicPlanner
+from cell.planning.planner import Planner, PlanningError, TimedTrajectory
 
 log = logging.getLogger(__name__)
 Run = Callable[[TimedTrajectory], dict[str, Any]]  # execute on the plant -> {"outcome", "peak_ratio", ...}

@@ -7,9 +7,21 @@ import json
 import numpy as np
 import pytest
 
-from bench.planning import PLANNER_NAMES, draw_path, gap_closed, random_paths, summarise, torque_move
+import bench.planning as bench_planning
+from bench.planning import (
+    PLANNER_NAMES,
+    TRUST_REFERENCE_DEG,
+    draw_path,
+    gap_closed,
+    random_paths,
+    summarise,
+    torque_move,
+    trust_reference_set,
+)
 from bench.planning_calibration import calibrate
-from cell.planning.planner import KinematicPlanner, PlannerConfig, ToppraPlanner
+from cell.planning.baselines import KinematicPlanner
+from cell.planning.config import PlannerConfig
+from cell.planning.planner import ToppraPlanner
 from cell.planning.speed_env import WORKSPACE_DEG
 from main import main
 
@@ -97,6 +109,21 @@ def test_the_path_classes_draw_their_kind_and_name_it(robot):
     assert names == ["random_00", "torque_01", "random_02", "torque_03"]
     # the default (speed) draw is the one the bench has always made: the same paths for the same seed
     assert [n for n, _ in random_paths(checker, 2, 1, box)] == ["random_00", "random_01"]
+
+
+def test_the_trusts_extra_reference_drives_joint_2_to_its_speed_cap_while_joint_1_reverses(robot, monkeypatch):
+    """The move the model under-predicts most on the plant is what the model trust is calibrated on first; the
+    kinematic baseline keeps the shared reference set."""
+    monkeypatch.setattr(bench_planning, "reference_set", lambda s: [("shared", PATH)])
+    assert [n for n, _ in trust_reference_set(None)] == ["reference_j2_fast", "shared"]  # type: ignore[arg-type]
+    cfg = PlannerConfig(velocity_fraction=0.75, acceleration_limits=[150.0] * 6, torque_margin=0.15)
+    def rigid(q, dq, ddq):
+        return np.array([robot.rnea(a, b, c) for a, b, c in zip(q, dq, ddq, strict=True)])
+
+    planner = ToppraPlanner(robot, rigid, cfg)
+    traj = planner.plan(np.radians(TRUST_REFERENCE_DEG["reference_j2_fast"]))
+    assert np.max(np.abs(traj.dq[:, 1])) >= 0.97 * planner.vlim[1]
+    assert np.min(traj.dq[:, 0]) < -0.3 and np.max(traj.dq[:, 0]) > 0.3  # joint 1 swings through a reversal
 
 
 def test_the_calibration_finds_the_largest_acceleration_fraction_within_the_limit(robot):

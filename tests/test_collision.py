@@ -9,8 +9,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from cell.collision.config import CollisionConfig, DetectorSettings, TaskContactSafety
 from cell.collision.guard import build_guard
-from cell.config import CONFIG_DIR, CollisionConfig, DetectorSettings, TaskContactSafety, VirtualSensorConfig
+from cell.config import CONFIG_DIR, VirtualSensorConfig
 from cell.control.loop import Command, ControlLoop, Observation
 from cell.control.safety import SafetyMonitor
 from cell.data.recorder import Recorder, read_log
@@ -212,7 +213,8 @@ def test_commanded_acceleration_widens_the_inertial_term_and_a_cruise_adds_nothi
 def test_a_time_optimal_plan_starting_at_full_acceleration_is_not_a_collision(vs, model):
     """`main.py plan`'s trajectory_3: toppra accelerates joints 3-5 from rest at 20-45 rad/s^2 within a
     few periods, while the measured acceleration's estimate still reads a fraction of it."""
-    from cell.planning.planner import ToppraPlanner, toppra_terms
+    from cell.planning.constraints import toppra_terms
+    from cell.planning.planner import ToppraPlanner
     from sim.cell import make_sim_cell
     from tasks.setup.plan import execute, load_plan_file
 

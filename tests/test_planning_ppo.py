@@ -6,14 +6,9 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from cell.planning.planner import (
-    GeometricPath,
-    KinematicPlanner,
-    Planner,
-    PlannerConfig,
-    TimedTrajectory,
-    ToppraPlanner,
-)
+from cell.planning.baselines import KinematicPlanner
+from cell.planning.config import PlannerConfig
+from cell.planning.planner import GeometricPath, Planner, TimedTrajectory, ToppraPlanner
 from cell.planning.ppo import PPOConfig, load_policy, load_snapshots, save_policy, save_snapshot
 from cell.planning.ppo_planner import PpoPlanner, PpoSettings, train_policy
 from cell.planning.speed_env import EnvConfig, PathSpeedEnv, SpeedEnvBatch, obs_dim, path_data, random_waypoints

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from cell.config import DetectorSettings
+from cell.collision.config import DetectorSettings
 from cell.model.dynamics.learned import LearnedModel
 from cell.model.dynamics.uncertainty import Coverage
 from cell.model.robot import RobotModel

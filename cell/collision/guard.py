@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from cell.collision.config import CollisionConfig
 from cell.collision.detector import CollisionDetector, Detection
-from cell.config import CollisionConfig
 from cell.model.robot import RobotModel
 from drivers.errors import SafetyStopError
 from drivers.interfaces import ArmState

@@ -9,7 +9,8 @@ from typing import Literal
 import numpy as np
 import pinocchio as pin
 
-from cell.config import CONFIG_DIR, CellConfig, DetectorSettings, resolve
+from cell.collision.config import DetectorSettings
+from cell.config import CONFIG_DIR, CellConfig, resolve
 from cell.model.dynamics.rigid_body import IdentificationConfig
 from cell.model.dynamics.uncertainty import CoverageConfig
 from cell.model.robot import RobotModel, ToolSpec, load_robot

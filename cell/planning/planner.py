@@ -23,121 +23,34 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
 import toppra as ta
 import toppra.algorithm as ta_algo
 import toppra.constraint as ta_con
-from toppra.constraint.linear_constraint import canlinear_colloc_to_interpolate
 
 from cell.collision.geometry import CollisionChecker
-from cell.model.dynamics.rigid_body import P2Model
 from cell.model.robot import RobotModel
-from drivers.configio import require
+from cell.planning.config import PlannerConfig
+from cell.planning.constraints import GradedTorqueConstraint, SpeedCapConstraint, ToppraTerms
 from drivers.errors import CellError
 
 log = logging.getLogger(__name__)
 ta.setup_logging("WARNING")
-DISCRETIZATIONS = {"interpolation": ta_con.DiscretizationType.Interpolation,
-                   "collocation": ta_con.DiscretizationType.Collocation}
+
+# The commanded TCP speed is checked as a chord between set-points; planning to 97 % of the stop leaves
+# room for the chord and the averaging of the exact step.
+TCP_SPEED_SHARE = 0.97
 
 TorqueFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (N,n) x3 -> (N,n)
-InvDyn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (n,) x3 -> (n,), second order in the path speed
-
-
-@dataclass
-class ToppraTerms:
-    """The part of a torque model toppra can take as its constraint: `inv_dyn` must be quadratic in the
-    path speed (rigid body, rotor inertia), `coulomb` the per-joint f_c of `f_c sign(q')`."""
-
-    inv_dyn: InvDyn
-    coulomb: np.ndarray | None = None
-
-
-def toppra_terms(model: object) -> ToppraTerms | None:
-    """The identified physics of a model-lab model (P2, or the physics part of H1-H3), or None (P1, D).
-
-    Rotor inertia matters most: at the accelerations a time-optimal plan reaches, `B_m q''` is as large
-    as the rigid body's torque, and leaving it to the iteration would make the path look infeasible.
-    """
-    p2 = model if isinstance(model, P2Model) else getattr(model, "physics", None)
-    if not isinstance(p2, P2Model):
-        return None
-    B_m = np.asarray(p2.params.B_m, float)
-
-    def inv_dyn(q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
-        return p2.rigid_one(q, dq, ddq) + B_m * ddq
-
-    return ToppraTerms(inv_dyn, np.asarray(p2.params.f_c, float))
-
-
-class GradedTorqueConstraint(ta_con.JointTorqueConstraint):
-    """toppra's joint torque constraint with the bound scaled by `factor` (one per grid point): the torque
-    coefficients a, b, c of each grid point are divided by its factor, which keeps F and g the same at every
-    grid point (so toppra's solvers take it as they take the plain constraint)."""
-
-    def __init__(self, inv_dyn: InvDyn, tau_lim: np.ndarray, coulomb: np.ndarray, factor: np.ndarray,
-                 discretization: str) -> None:
-        super().__init__(inv_dyn, tau_lim, coulomb, discretization_scheme=DISCRETIZATIONS["collocation"])
-        self.factor = np.asarray(factor, float)
-        self.interpolate = discretization == "interpolation"
-
-    def compute_constraint_params(self, path: object, gridpoints: np.ndarray) -> tuple[object, ...]:
-        a, b, c, F, g, _, _ = super().compute_constraint_params(path, gridpoints)
-        f = self.factor[:, None]
-        a, b, c = a / f, b / f, c / f
-        if self.interpolate:
-            return tuple(canlinear_colloc_to_interpolate(a, b, c, F, g, None, None, gridpoints, identical=True))
-        return a, b, c, F, g, None, None
 
 
 class PlanningError(CellError):
     """The waypoints cannot be planned (outside limits, colliding, or infeasible)."""
 
     exit_code = 2
-
-
-@dataclass
-class PlannerConfig:
-    torque_margin: float = 0.10  # plan to (1 - margin) x the effort limit
-    velocity_fraction: float = 1.0  # of the URDF speed limits
-    acceleration_limits: list[float] = field(default_factory=lambda: [40.0, 40.0, 40.0, 60.0, 60.0, 60.0])
-    gridpoints: int = 200
-    max_iterations: int = 10
-    sample_period_s: float = 0.008
-    baseline_blend: float = 0.25  # share of the baseline's duration spent accelerating (and braking)
-    collision_samples: int = 200
-    # toppra's optimum switches the path acceleration between its bounds instantly; a servo fed such a
-    # step overshoots it (the measured torque exceeds the model's for a few cycles).  The path
-    # parameter s(t) is averaged over this window (0: off), which bounds the jerk and adds about the
-    # window to the duration.
-    smoothing_s: float = 0.04
-    # Where toppra checks the torque constraint: "interpolation" at both ends of every grid segment,
-    # "collocation" (toppra's default) only at its start.  The clamped spline has dp/ds = 0 at s = 0, so a
-    # check at the start alone leaves the first segment's acceleration free: the profile shot up and stalled
-    # within 20 ms, and first runs overshot a motor there (why: docs/planning.md, "Start transients").
-    torque_discretization: str = "interpolation"
-    # The plant's torque overshoots the model's as the arm leaves rest (servo lag, friction breaking away,
-    # the controller's cubic interpolation of the set-points): the highest first-run peaks were all 64-88 ms
-    # into the motion.  The rigid-body bound is lowered by this share over the first `start_margin_s` of the
-    # motion (back to the full bound over the next half window); it costs 0-16 ms a path (docs/planning.md).
-    start_margin: float = 0.15
-    start_margin_s: float = 0.10
-
-    def validate(self, where: str) -> None:
-        require(0 <= self.torque_margin < 0.9, f"{where}.torque_margin", "must lie in [0, 0.9)")
-        require(0 < self.velocity_fraction <= 1, f"{where}.velocity_fraction", "must lie in (0, 1]")
-        require(len(self.acceleration_limits) == 6, f"{where}.acceleration_limits", "must have 6 values")
-        require(all(a > 0 for a in self.acceleration_limits), f"{where}.acceleration_limits", "must be > 0")
-        require(20 <= self.gridpoints <= 2000, f"{where}.gridpoints", "must lie in [20, 2000]")
-        require(0 < self.baseline_blend <= 0.5, f"{where}.baseline_blend", "must lie in (0, 0.5]")
-        require(0 <= self.smoothing_s <= 0.5, f"{where}.smoothing_s", "must lie in [0, 0.5] s")
-        require(self.torque_discretization in DISCRETIZATIONS, f"{where}.torque_discretization",
-                f"must be one of {', '.join(DISCRETIZATIONS)}")
-        require(0 <= self.start_margin <= 0.5, f"{where}.start_margin", "must lie in [0, 0.5]")
-        require(0 <= self.start_margin_s <= 1.0, f"{where}.start_margin_s", "must lie in [0, 1] s")
 
 
 @dataclass
@@ -152,6 +65,7 @@ class TimedTrajectory:
     plan_time_s: float = 0.0
     iterations: int = 1
     torque_scale: np.ndarray | None = None  # per-joint bound tightening the plan needed
+    s: np.ndarray | None = None  # the path parameter of each sample, where the planner knows it
 
     @property
     def duration(self) -> float:
@@ -194,7 +108,7 @@ class GeometricPath:
         return self.spline(s), self.spline(s, 1), self.spline(s, 2)
 
 
-class _Base:
+class PlannerBase:
     def __init__(
         self,
         robot: RobotModel,
@@ -264,7 +178,7 @@ class _Base:
         return np.max(np.abs(tau), axis=0) / self.torque_limit(scale)
 
 
-class ToppraPlanner(_Base):
+class ToppraPlanner(PlannerBase):
     name = "toppra"
 
     def plan(self, waypoints: np.ndarray, torque_scale: np.ndarray | None = None) -> TimedTrajectory:
@@ -273,30 +187,107 @@ class ToppraPlanner(_Base):
         n = self.robot.n
         scale = np.ones(n) if torque_scale is None else np.array(torque_scale, float)
         grid = np.linspace(0, 1, self.cfg.gridpoints + 1)
+        cap = self.speed_cap(path, grid)
         bound = scale.copy()  # the toppra constraint's share of the limit, lowered while the full model exceeds
+        offset: np.ndarray | None = None  # the full model's torque beyond toppra's terms, per grid point
+        local = np.ones((len(grid), n))  # per grid point and joint: the share of the bound left where it exceeded
+        limit = self.torque_limit(scale)
+        use_local = self.cfg.residual == "local"
         for it in range(1, self.cfg.max_iterations + 1):
-            traj = self.timed(path, grid, self.speed_profile(path, grid, self.torque_limit(bound)))
-            ratio = self.excess(traj, scale)
+            try:
+                sd = self.speed_profile(path, grid, self.torque_limit(bound), offset, cap, local)
+            except PlanningError:
+                if offset is None and np.all(local == 1.0):
+                    raise
+                # The local terms made a point infeasible (a residual measured at speed, where the arm must
+                # hold or pass slowly): the global rule takes over from the plain bound.
+                log.info("planner: the local torque terms left no feasible timing; lowering joint bounds instead")
+                offset, local, use_local = None, np.ones_like(local), False
+                sd = self.speed_profile(path, grid, self.torque_limit(bound), None, cap, None)
+            traj = self.timed(path, grid, sd)
+            over = np.abs(self.torque_fn(traj.q, traj.dq, traj.ddq)) / limit
+            ratio = np.max(over, axis=0)
             if np.all(ratio <= 1.0 + 1e-3):
                 return self.stamp(traj, t0, it, scale)
+            if use_local and it < self.cfg.max_iterations // 2:
+                # Where the plan was: the next plan takes the full model's torque beyond toppra's terms as
+                # known at each grid point; from the second round, what still exceeds (the residual moved with
+                # the speed gained, or the rigid-body torque between grid points) lowers the bound there alone.
+                if it > 1:
+                    local = local * self.local_tightening(traj, grid, over)
+                offset = self.residual_on_grid(traj, grid)
+                continue
             # Lower the rigid-body bound of each violating joint by its excess and try again.
             bound = np.where(ratio > 1.0, bound / ratio * 0.995, bound)
+        if self.cfg.residual == "local":
+            # The local terms did not settle (a residual that grows faster than the speed it costs): the
+            # global rule alone, from the start, always converges by lowering whole bounds.
+            log.info("planner: the local torque terms did not converge (worst ratio %.3f); planning with the "
+                     "global rule", float(np.max(ratio)))
+            fallback = ToppraPlanner(self.robot, self.torque_fn, replace(self.cfg, residual="global"),
+                                     None, self.terms)
+            fallback.name = self.name
+            return self.stamp(fallback.plan(waypoints, torque_scale), t0, 2 * self.cfg.max_iterations, scale)
         raise PlanningError(
             f"the full model's torques still exceed the limits after {self.cfg.max_iterations} re-plans "
             f"(worst ratio {float(np.max(ratio)):.3f})"
         )
 
-    def speed_profile(self, path: GeometricPath, grid: np.ndarray, limit: np.ndarray) -> np.ndarray:
+    def rigid_torque(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
+        """toppra's terms (inv_dyn and Coulomb friction) on samples (N, n)."""
+        tau = np.array([self.terms.inv_dyn(a, b, c) for a, b, c in zip(q, dq, ddq, strict=True)])
+        return tau if self.terms.coulomb is None else tau + self.terms.coulomb * np.sign(dq)
+
+    @staticmethod
+    def local_tightening(traj: TimedTrajectory, grid: np.ndarray, over: np.ndarray, reach: int = 2) -> np.ndarray:
+        """Per grid point and joint, 1 / the excess of the samples over their limit within `reach` grid cells
+        (1 elsewhere): the share of the bound the next plan keeps there."""
+        assert traj.s is not None
+        out = np.ones((len(grid), over.shape[1]))
+        cell = np.clip(np.searchsorted(grid, traj.s, side="right") - 1, 0, len(grid) - 2)
+        for k, j in zip(*np.nonzero(over > 1.0), strict=True):
+            lo, hi = max(cell[k] - reach + 1, 0), min(cell[k] + reach + 1, len(grid) - 1)
+            out[lo:hi + 1, j] = np.minimum(out[lo:hi + 1, j], 1.0 / (over[k, j] * 1.005))
+        return out
+
+    def residual_on_grid(self, traj: TimedTrajectory, grid: np.ndarray) -> np.ndarray:
+        """The full model's torque minus toppra's terms along the trajectory, at the grid points (by s)."""
+        assert traj.s is not None
+        r = self.torque_fn(traj.q, traj.dq, traj.ddq) - self.rigid_torque(traj.q, traj.dq, traj.ddq)
+        s, keep = np.unique(traj.s, return_index=True)
+        return np.column_stack([np.interp(grid, s, r[keep, j]) for j in range(r.shape[1])])
+
+    def speed_cap(self, path: GeometricPath, grid: np.ndarray) -> np.ndarray | None:
+        """The exact step's path-speed cap per grid point (None for the smoothed step, which keeps toppra's
+        joint speed constraint): the joint speed limits and the TCP speed limit at the grid points.  Between
+        grid points a cap can dip below toppra's chord (sd^2 is linear in s on a segment); `timed_exact`
+        slows the profile there alone.  Holding the caps over each grid point's neighbourhood instead lowers
+        them wherever they slope, which cost 2 % of a speed-bound path."""
+        if self.cfg.retiming != "exact":
+            return None
+        q, dp, _ = path.eval(grid)
+        cap = np.min(self.vlim[None, :] / np.maximum(np.abs(dp), 1e-9), axis=1)
+        if self.cfg.tcp_speed_limit > 0:
+            v = np.array([np.linalg.norm(self.robot.tcp_jacobian(a)[:3] @ b) for a, b in zip(q, dp, strict=True)])
+            cap = np.minimum(cap, TCP_SPEED_SHARE * self.cfg.tcp_speed_limit / np.maximum(v, 1e-9))
+        return cap
+
+    def speed_profile(self, path: GeometricPath, grid: np.ndarray, limit: np.ndarray,
+                      offset: np.ndarray | None = None, cap: np.ndarray | None = None,
+                      local: np.ndarray | None = None) -> np.ndarray:
         """toppra's fastest path speed sd at the grid points (from rest to rest) under the joint speed and
-        acceleration limits and the rigid-body torque bound +-`limit` (N·m per joint), lowered by
-        `start_margin` over the motion's first `start_margin_s`.  Where that window ends along the path is
-        taken from the profile without the margin (the margin only makes the start slower, so the window in
-        time is at least as long as configured)."""
-        sd = self._toppra(path, grid, limit, np.ones(len(grid)))
+        acceleration limits and the rigid-body torque bound +-`limit` (N·m per joint; `offset`, torque known
+        beyond toppra's terms per grid point, counts against it), lowered by `start_margin` over the motion's
+        first `start_margin_s`.  Where that window ends along the path is taken from the profile without the
+        margin (the margin only makes the start slower, so the window in time is at least as long as
+        configured).  `cap`: a path-speed cap per grid point instead of toppra's joint speed constraint;
+        `local`: a share of the bound per grid point and joint (1: all of it)."""
+        shares = np.ones((len(grid), self.robot.n)) if local is None else local
+        sd = self._toppra(path, grid, limit, shares, offset, cap)
         if self.cfg.start_margin <= 0 or self.cfg.start_margin_s <= 0:
             return sd
         try:
-            return self._toppra(path, grid, limit, self.start_factor(grid, sd))
+            return self._toppra(path, grid, limit, self.start_factor(grid, sd)[:, None] * shares, offset, cap)
         except PlanningError:
             # Holding the start pose alone takes more than (1 - start_margin) of the bound: plan without it.
             log.warning("planner: the start margin leaves no feasible timing here; planned without it")
@@ -311,13 +302,15 @@ class ToppraPlanner(_Base):
         rise = np.clip((t - window) / (0.5 * window), 0.0, 1.0)
         return 1.0 - self.cfg.start_margin * (1.0 - rise)
 
-    def _toppra(self, path: GeometricPath, grid: np.ndarray, limit: np.ndarray, factor: np.ndarray) -> np.ndarray:
+    def _toppra(self, path: GeometricPath, grid: np.ndarray, limit: np.ndarray, factor: np.ndarray,
+                offset: np.ndarray | None = None, cap: np.ndarray | None = None) -> np.ndarray:
         n = self.robot.n
-        vel = ta_con.JointVelocityConstraint(np.column_stack([-self.vlim, self.vlim]))
+        vel: ta_con.LinearConstraint = (ta_con.JointVelocityConstraint(np.column_stack([-self.vlim, self.vlim]))
+                                        if cap is None else SpeedCapConstraint(cap))
         acc = ta_con.JointAccelerationConstraint(np.column_stack([-self.alim, self.alim]))
         friction = np.zeros(n) if self.terms.coulomb is None else self.terms.coulomb
         torque = GradedTorqueConstraint(self.terms.inv_dyn, np.column_stack([-limit, limit]), friction, factor,
-                                        self.cfg.torque_discretization)
+                                        self.cfg.torque_discretization, offset)
         algo = ta_algo.TOPPRA([vel, acc, torque], path.spline, gridpoints=grid, parametrizer="ParametrizeConstAccel")
         _, sd, _ = algo.compute_parameterization(0.0, 0.0)
         if sd is None or not np.all(np.isfinite(sd)):
@@ -325,8 +318,93 @@ class ToppraPlanner(_Base):
         return np.maximum(np.asarray(sd, float), 0.0)
 
     def timed(self, path: GeometricPath, grid: np.ndarray, sd: np.ndarray) -> TimedTrajectory:
-        """Sample the path speed profile sd(s) (constant path acceleration between grid points) every
-        period, smoothed over `smoothing_s`."""
+        """The set-points of the path speed profile sd(s) (constant path acceleration between grid points),
+        by the configured step (`retiming`)."""
+        if self.cfg.retiming == "exact":
+            return self.timed_exact(path, grid, sd)
+        return self.timed_smoothed(path, grid, sd)
+
+    def speed_over(self, path: GeometricPath, s: np.ndarray, s_d: np.ndarray) -> np.ndarray:
+        """Per sample: the largest joint speed / limit, and the TCP speed / its planning share if set."""
+        q, dp, _ = path.eval(s)
+        over = np.max(np.abs(dp * s_d[:, None]) / self.vlim, axis=1)
+        if self.cfg.tcp_speed_limit > 0:
+            v = np.array([np.linalg.norm(self.robot.tcp_jacobian(a)[:3] @ b) for a, b in zip(q, dp, strict=True)])
+            over = np.maximum(over, v * np.abs(s_d) / (TCP_SPEED_SHARE * self.cfg.tcp_speed_limit))
+        return over
+
+    def timed_exact(self, path: GeometricPath, grid: np.ndarray, sd: np.ndarray) -> TimedTrajectory:
+        """Sample toppra's profile every period as it is (s, its speed and acceleration from the profile's own
+        constant-acceleration segments, not from differences).  Where a speed cap dips below the profile
+        between grid points, time is dilated there alone, by the excess.  Then the joint trajectory (not s)
+        is averaged over `exact_smoothing_s`: every joint's speed and acceleration are averages of the
+        planned ones, so neither grows past its bound (averaging s instead mixes the large path accelerations
+        near the path's ends, where dp/ds -> 0, into points where they are not small); the path is left by
+        well under a milliradian.  A uniform stretch is the last resort, logged."""
+        ds = np.diff(grid)
+        seg_t = 2.0 * ds / np.maximum(sd[:-1] + sd[1:], 1e-9)
+        t_nodes = np.concatenate([[0.0], np.cumsum(seg_t)])
+        seg_a = (sd[1:] ** 2 - sd[:-1] ** 2) / (2.0 * ds)
+        dt = self.cfg.sample_period_s
+        ts = np.arange(0.0, t_nodes[-1] + dt, dt)
+        i = np.clip(np.searchsorted(t_nodes, ts, side="right") - 1, 0, len(ds) - 1)
+        tau = np.clip(ts - t_nodes[i], 0.0, seg_t[i])
+        moving = ts < t_nodes[-1]
+        s = np.clip(grid[i] + sd[i] * tau + 0.5 * seg_a[i] * tau**2, 0.0, 1.0)
+        s_d = np.where(moving, sd[i] + seg_a[i] * tau, 0.0)
+        s_dd = np.where(moving, seg_a[i], 0.0)
+        s[-1] = 1.0
+        for _ in range(3):
+            over = self.speed_over(path, s, s_d)
+            if np.max(over) <= 1.0 + 1e-4:
+                break
+            # Time runs slower by the excess at the samples over a cap, and only there: the speeds there
+            # become speed / excess; the rest of the profile is untouched.  Resampling can leave a sliver of
+            # excess between old samples, so this repeats.
+            dilation = np.where(over > 1.0, over * 1.0005, 1.0)
+            t_new = np.concatenate([[0.0], np.cumsum(0.5 * (dilation[1:] + dilation[:-1]) * dt)])
+            t_out = np.arange(0.0, t_new[-1] + dt, dt)
+            s, s_d = np.interp(t_out, t_new, s), np.interp(t_out, t_new, s_d / dilation)
+            s[-1] = 1.0
+            s_dd = np.gradient(s_d, dt)
+            log.debug("planner: exact step dilated %d samples (speed up to %.4f of a cap)",
+                      int(np.sum(over > 1.0)), float(np.max(over)))
+        k = float(np.max(self.speed_over(path, s, s_d)))
+        if k > 1.001:
+            log.info("planner: exact step stretched uniformly by %.4f (speed over a cap after dilation)", k)
+            t_old = np.arange(len(s)) * dt
+            t_out = np.arange(0.0, t_old[-1] * k + dt, dt)
+            s, s_d = np.interp(t_out / k, t_old, s), np.interp(t_out / k, t_old, s_d) / k
+            s[-1] = 1.0
+            s_dd = np.gradient(s_d, dt)
+        s_d[0] = s_d[-1] = 0.0
+        q, dp, ddp = path.eval(s)
+        dq = dp * s_d[:, None]
+        ddq = ddp * s_d[:, None] ** 2 + dp * s_dd[:, None]
+        w = int(round(self.cfg.exact_smoothing_s / dt))
+        if w >= 2:
+            kernel = np.ones(w) / w
+
+            def average(x: np.ndarray, start: np.ndarray | float, end: np.ndarray | float) -> np.ndarray:
+                padded = np.concatenate([np.broadcast_to(start, (w,) + x.shape[1:]), x,
+                                         np.broadcast_to(end, (w,) + x.shape[1:])])
+                if x.ndim == 1:
+                    return np.convolve(padded, kernel, mode="valid")
+                return np.column_stack([np.convolve(padded[:, j], kernel, mode="valid") for j in range(x.shape[1])])
+
+            s_avg = average(s, 0.0, 1.0)
+            end = int(np.nonzero(s_avg >= 1.0 - 1e-12)[0][0]) + 1
+            q = average(q, q[0], q[-1])[:end]
+            dq, ddq = average(dq, 0.0, 0.0)[:end], average(ddq, 0.0, 0.0)[:end]
+            s = s_avg[:end]
+            q[-1], dq[-1], ddq[-1], s[-1] = path.waypoints[-1], 0.0, 0.0, 1.0
+        traj = self.sample(self.name, np.arange(len(s)) * dt, q, dq, ddq)
+        traj.s = s
+        return traj
+
+    def timed_smoothed(self, path: GeometricPath, grid: np.ndarray, sd: np.ndarray) -> TimedTrajectory:
+        """The comparison planners' step: the path speed profile sd(s) (constant path acceleration between grid
+        points) sampled every period, smoothed over `smoothing_s`, then stretched where a limit is exceeded."""
         ds = np.diff(grid)
         seg_t = 2.0 * ds / np.maximum(sd[:-1] + sd[1:], 1e-9)
         t_nodes = np.concatenate([[0.0], np.cumsum(seg_t)])
@@ -369,91 +447,3 @@ class ToppraPlanner(_Base):
             s = np.interp(np.arange(0.0, t_old[-1] * k * 1.001 + dt, dt) / (k * 1.001), t_old, s)
             s[-1] = 1.0
         return self.sample(self.name, np.arange(len(s)) * dt, p, dq, ddq)
-
-
-class UniformScalingPlanner(_Base):
-    """Baseline: a trapezoidal profile in s, uniformly time-scaled to the fastest that fits."""
-
-    name = "uniform"
-
-    def profile(self, T: float, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        b = self.cfg.baseline_blend
-        v = 1.0 / (T * (1.0 - b))  # cruise ds/dt so that s(T) = 1
-        a = v / (b * T)
-        tb = b * T
-        s = np.where(ts < tb, 0.5 * a * ts**2,
-                     np.where(ts < T - tb, 0.5 * a * tb**2 + v * (ts - tb), 1.0 - 0.5 * a * (T - ts) ** 2))
-        sd = np.where(ts < tb, a * ts, np.where(ts < T - tb, v, a * (T - ts)))
-        sdd = np.where(ts < tb, a, np.where(ts < T - tb, 0.0, -a))
-        return np.clip(s, 0, 1), sd, sdd
-
-    def timed(self, path: GeometricPath, T: float) -> TimedTrajectory:
-        ts = np.arange(0.0, T + 1e-9, self.cfg.sample_period_s)
-        if ts[-1] < T:
-            ts = np.append(ts, T)
-        s, sd, sdd = self.profile(T, ts)
-        p, dp, ddp = path.eval(s)
-        dq = dp * sd[:, None]
-        ddq = ddp * sd[:, None] ** 2 + dp * sdd[:, None]
-        return self.sample(self.name, ts, p, dq, ddq)
-
-    def fits(self, traj: TimedTrajectory, scale: np.ndarray) -> bool:
-        if np.any(np.abs(traj.dq) > self.vlim * (1 + 1e-6)) or np.any(np.abs(traj.ddq) > self.alim * (1 + 1e-6)):
-            return False
-        return bool(np.all(self.excess(traj, scale) <= 1.0))
-
-    def plan(self, waypoints: np.ndarray, torque_scale: np.ndarray | None = None) -> TimedTrajectory:
-        t0 = time.perf_counter()
-        path = self.check_waypoints(waypoints)
-        scale = np.ones(self.robot.n) if torque_scale is None else np.array(torque_scale, float)
-        lo, hi = 0.05, 0.5
-        while not self.fits(self.timed(path, hi), scale):
-            lo, hi = hi, hi * 2
-            if hi > 120:
-                raise PlanningError("no uniform time-scaling under 120 s keeps the torques within the limits")
-        for _ in range(40):  # bisection to ~1 ms
-            if hi - lo < 1e-3:
-                break
-            mid = 0.5 * (lo + hi)
-            if self.fits(self.timed(path, mid), scale):
-                hi = mid
-            else:
-                lo = mid
-        traj = self.timed(path, hi)
-        traj.plan_time_s = time.perf_counter() - t0
-        traj.torque_scale = scale
-        return traj
-
-
-class KinematicPlanner(ToppraPlanner):
-    """Baseline: TOPP-RA under joint speed and acceleration limits only (what MoveIt's TOTG or ruckig give an
-    integrator).  The torque model is not consulted: `cfg.acceleration_limits` must be set conservatively
-    enough for the arm's motors (bench/planning_calibration.py chooses them on the plant); `torque_scale`,
-    when given, scales those accelerations per joint (torque grows with acceleration)."""
-
-    name = "kinematic"
-
-    def plan(self, waypoints: np.ndarray, torque_scale: np.ndarray | None = None) -> TimedTrajectory:
-        t0 = time.perf_counter()
-        path = self.check_waypoints(waypoints)
-        alim = self.alim if torque_scale is None else self.alim * np.asarray(torque_scale, float)
-        vel = ta_con.JointVelocityConstraint(np.column_stack([-self.vlim, self.vlim]))
-        acc = ta_con.JointAccelerationConstraint(np.column_stack([-alim, alim]))
-        grid = np.linspace(0, 1, self.cfg.gridpoints + 1)
-        algo = ta_algo.TOPPRA([vel, acc], path.spline, gridpoints=grid, parametrizer="ParametrizeConstAccel")
-        _, sd, _ = algo.compute_parameterization(0.0, 0.0)
-        if sd is None or not np.all(np.isfinite(sd)):
-            raise PlanningError("no feasible timing under the joint speed and acceleration limits")
-        saved = self.alim
-        self.alim = alim  # `timed` re-checks the accelerations of the smoothed result against these
-        try:
-            traj = self.timed(path, grid, np.maximum(np.asarray(sd, float), 0.0))
-        finally:
-            self.alim = saved
-        traj.plan_time_s = time.perf_counter() - t0
-        return traj
-
-
-PLANNERS: dict[str, type[ToppraPlanner | UniformScalingPlanner]] = {
-    "toppra": ToppraPlanner, "uniform": UniformScalingPlanner, "kinematic": KinematicPlanner,
-}

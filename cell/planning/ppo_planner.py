@@ -20,15 +20,9 @@ import numpy as np
 
 from cell.collision.geometry import CollisionChecker
 from cell.model.robot import RobotModel
-from cell.planning.planner import (
-    GeometricPath,
-    PlannerConfig,
-    PlanningError,
-    TimedTrajectory,
-    ToppraPlanner,
-    ToppraTerms,
-    TorqueFn,
-)
+from cell.planning.config import PlannerConfig
+from cell.planning.constraints import ToppraTerms
+from cell.planning.planner import GeometricPath, PlanningError, TimedTrajectory, ToppraPlanner, TorqueFn
 from cell.planning.ppo import Params, PPOConfig, act_deterministic, load_policy, save_policy, save_snapshot, train
 from cell.planning.speed_env import EnvConfig, PathData, SpeedEnvBatch, obs_dim, path_data, random_waypoints
 
@@ -72,7 +66,7 @@ class PpoPlanner(ToppraPlanner):
         sd = self.rollout(path, self.torque_limit(scale))
         grid = np.linspace(0.0, 1.0, self.ec.knots + 1)
         for it in range(1, MAX_SLOWDOWNS + 1):
-            traj = self.timed(path, grid, sd)
+            traj = self.timed_smoothed(path, grid, sd)  # the step it was trained and compared with
             ratio = self.excess(traj, scale)
             if np.all(ratio <= 1.0 + 1e-3):
                 return self.stamp(traj, t0, it, scale)

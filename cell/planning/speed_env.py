@@ -23,7 +23,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from cell.planning.planner import InvDyn, TorqueFn
+from cell.planning.constraints import InvDyn
+from cell.planning.planner import TorqueFn
 
 # Where the random paths of training and of the planning bench lie (degrees): the named paths' region
 # (config/plans.yaml), in front of and beside the base, elbow up, wrist pointing down-ish.

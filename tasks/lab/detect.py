@@ -22,9 +22,10 @@ from typing import Any
 
 import numpy as np
 
+from cell.collision.config import DetectorSettings
 from cell.collision.detector import CollisionDetector
 from cell.collision.guard import ContactGuard
-from cell.config import CellConfig, DetectorSettings
+from cell.config import CellConfig
 from cell.data.dataset import Trajectory, load_manifest, load_split
 from cell.model.dynamics.artefact import save_model
 from cell.model.dynamics.learned import LearnedModel

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from cell.config import TaskContactSafety
+from cell.collision.config import TaskContactSafety
 from cell.control.loop import Command, Observation
 from cell.model.robot import RobotModel
 from tasks.primitives.base import Context, Primitive

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +20,10 @@ from cell.control.loop import OpenCell  # noqa: E402
 from cell.control.signals import raise_if_interrupted
 from cell.data.recorder import read_log  # noqa: E402
 from cell.model.robot import RobotModel  # noqa: E402
-from cell.planning.planner import PLANNERS, PlannerConfig, PlanningError, TimedTrajectory, ToppraTerms, TorqueFn  # noqa: E402
+from cell.planning.baselines import PLANNERS
+from cell.planning.config import PlannerConfig
+from cell.planning.constraints import ToppraTerms
+from cell.planning.planner import PlanningError, TimedTrajectory, TorqueFn  # noqa: E402
 from drivers.configio import load_dataclass, read_yaml, require  # noqa: E402
 from tasks.runner import run_task  # noqa: E402
 from tasks.setup.play import PlayTask  # noqa: E402
@@ -54,7 +57,12 @@ class PlanFile:
 
 
 def load_plan_file(path: Path) -> PlanFile:
-    return load_dataclass(PlanFile, read_yaml(path), f"{path}:")
+    """The plan file; the planner bounds the TCP speed by the plan runs' stop (`max_tcp_speed`) unless the
+    file sets `planner.tcp_speed_limit` itself."""
+    plan_file = load_dataclass(PlanFile, read_yaml(path), f"{path}:")
+    if plan_file.planner.tcp_speed_limit <= 0:
+        plan_file.planner = replace(plan_file.planner, tcp_speed_limit=plan_file.max_tcp_speed)
+    return plan_file
 
 
 def parse_waypoints(text: str) -> list[list[float]]:
@@ -181,7 +189,11 @@ def plan_and_validate(
             over = peak >= 0.99 * cfg.safety.joint_torque_fraction * effort
             over = over if over.any() else ratio >= np.nanmax(ratio)  # stopped for another reason: the worst joint
             bad = np.where(over, np.minimum(bad, scale), bad)
-            scale = np.where(over, np.where(good > 0, 0.5 * (good + scale), np.minimum(wanted, scale)), scale)
+            # A joint that reached the stop is tightened by its measured error even where its predicted peak
+            # was too small to count as loaded: a stop is evidence, and left at its scale the same plan would
+            # run again (a steep start under a model that under-predicts).
+            cut = np.minimum(1.0, 0.98 / np.maximum(factor, 1e-6))
+            scale = np.where(over, np.where(good > 0, 0.5 * (good + scale), np.minimum(cut, scale)), scale)
     assert last is not None  # the first round either ran or raised
     result = best or last  # the fastest run within the limits, else the last attempt
     result.rounds, result.stops = last.rounds, stops
