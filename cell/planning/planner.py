@@ -108,6 +108,20 @@ class GeometricPath:
         return self.spline(s), self.spline(s, 1), self.spline(s, 2)
 
 
+def sample_profile(grid: np.ndarray, sd: np.ndarray, dt: float) -> tuple[np.ndarray, float, np.ndarray, np.ndarray,
+                                                                           np.ndarray]:
+    """Sample times every `dt` of the path speed profile sd(s) (constant path acceleration between grid points):
+    (times, the profile's end time, each sample's grid segment, the time into it, each segment's acceleration)."""
+    ds = np.diff(grid)
+    seg_t = 2.0 * ds / np.maximum(sd[:-1] + sd[1:], 1e-9)
+    t_nodes = np.concatenate([[0.0], np.cumsum(seg_t)])
+    seg_a = (sd[1:] ** 2 - sd[:-1] ** 2) / (2.0 * ds)
+    ts = np.arange(0.0, t_nodes[-1] + dt, dt)
+    i = np.clip(np.searchsorted(t_nodes, ts, side="right") - 1, 0, len(ds) - 1)
+    tau = np.clip(ts - t_nodes[i], 0.0, seg_t[i])
+    return ts, float(t_nodes[-1]), i, tau, seg_a
+
+
 class PlannerBase:
     def __init__(
         self,
@@ -341,15 +355,9 @@ class ToppraPlanner(PlannerBase):
         planned ones, so neither grows past its bound (averaging s instead mixes the large path accelerations
         near the path's ends, where dp/ds -> 0, into points where they are not small); the path is left by
         well under a milliradian.  A uniform stretch is the last resort, logged."""
-        ds = np.diff(grid)
-        seg_t = 2.0 * ds / np.maximum(sd[:-1] + sd[1:], 1e-9)
-        t_nodes = np.concatenate([[0.0], np.cumsum(seg_t)])
-        seg_a = (sd[1:] ** 2 - sd[:-1] ** 2) / (2.0 * ds)
         dt = self.cfg.sample_period_s
-        ts = np.arange(0.0, t_nodes[-1] + dt, dt)
-        i = np.clip(np.searchsorted(t_nodes, ts, side="right") - 1, 0, len(ds) - 1)
-        tau = np.clip(ts - t_nodes[i], 0.0, seg_t[i])
-        moving = ts < t_nodes[-1]
+        ts, t_end, i, tau, seg_a = sample_profile(grid, sd, dt)
+        moving = ts < t_end
         s = np.clip(grid[i] + sd[i] * tau + 0.5 * seg_a[i] * tau**2, 0.0, 1.0)
         s_d = np.where(moving, sd[i] + seg_a[i] * tau, 0.0)
         s_dd = np.where(moving, seg_a[i], 0.0)
@@ -405,14 +413,8 @@ class ToppraPlanner(PlannerBase):
     def timed_smoothed(self, path: GeometricPath, grid: np.ndarray, sd: np.ndarray) -> TimedTrajectory:
         """The comparison planners' step: the path speed profile sd(s) (constant path acceleration between grid
         points) sampled every period, smoothed over `smoothing_s`, then stretched where a limit is exceeded."""
-        ds = np.diff(grid)
-        seg_t = 2.0 * ds / np.maximum(sd[:-1] + sd[1:], 1e-9)
-        t_nodes = np.concatenate([[0.0], np.cumsum(seg_t)])
-        seg_a = (sd[1:] ** 2 - sd[:-1] ** 2) / (2.0 * ds)
         dt = self.cfg.sample_period_s
-        ts = np.arange(0.0, t_nodes[-1] + dt, dt)
-        i = np.clip(np.searchsorted(t_nodes, ts, side="right") - 1, 0, len(ds) - 1)
-        tau = np.clip(ts - t_nodes[i], 0.0, seg_t[i])
+        ts, t_end, i, tau, seg_a = sample_profile(grid, sd, dt)
         s = np.clip(grid[i] + sd[i] * tau + 0.5 * seg_a[i] * tau**2, 0.0, 1.0)
         w = int(round(self.cfg.smoothing_s / dt))
         if w >= 2:
