@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import io
+import os
 import re
 import textwrap
 import tokenize
@@ -15,14 +16,28 @@ from typing import Any
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 from cell.config import CellConfig, load_config, resolve
+from cell.control.priority import raised_priority
 from cell.model.robot import RobotModel, load_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# The drivers' fixtures (emulator, connected device), shared by each driver's test modules.
-pytest_plugins = ["tests.tm5_fixtures", "tests.wacoh_fixtures"]
+# The numeric libraries' threads in the test processes and the commands they start.  Two cores shared with
+# other jobs, and test.sh runs two test processes: a thread that spins while its partner is descheduled
+# turns a millisecond call into a scheduler slice (on a busy machine an SVD of the excitation search took
+# 3 ms on one OpenBLAS thread, 520 ms on two; an XGBoost round on two threads 6 ms sleeping, 120 ms
+# spinning).  One BLAS thread per process (threadpoolctl for this one, numpy being loaded; the environment
+# for its children), and OpenMP threads that sleep while they wait (XGBoost keeps its thread count and
+# so its results).  Either can be set otherwise in the environment.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+threadpool_limits(limits=int(os.environ["OPENBLAS_NUM_THREADS"]), user_api="blas")
+
+# The drivers' fixtures (emulator, connected device), shared by each driver's test modules; the artefacts
+# built once per run and shared by the tests (and the xdist workers) that need them.
+pytest_plugins = ["tests.tm5_fixtures", "tests.wacoh_fixtures", "tests.prepared_fixtures"]
 
 # What drives a simulated cell: its factories (the sim cell, the emulated cell in a child process, the app's
 # openers), named in code rather than in a string, and the CLI commands that open one (in-process
@@ -124,6 +139,25 @@ def _sim_cells_only_in_slow_tests(request: pytest.FixtureRequest, monkeypatch: p
         except ImportError:  # a module that does not import cannot open its cell either
             continue
         monkeypatch.setattr(cls, name, _refuse(what, request.node.nodeid))
+
+
+# The fixtures that serve a test's drivers from a thread of its own process (the TM5 Modbus and WACOH
+# emulators) or from a child process (the emulated cell): the replies are due within milliseconds (a 30 ms
+# Modbus timeout, a 1 kHz stream, the cell's 8 ms period), and the drivers' threads read them.
+DEVICE_FIXTURES = frozenset({"emulator", "make_emulator", "emulated"})
+
+
+@pytest.fixture(autouse=True)
+def _devices_at_raised_priority(request: pytest.FixtureRequest) -> Iterator[None]:
+    """A test with such a device runs (and starts its threads and children) at raised priority, as the emulated
+    cell's loops do (cell/control/priority.py: nice -10 where permitted): beside another test process and
+    other jobs on two cores, its devices then answer and its drivers read in time however busy the machine
+    is."""
+    if not DEVICE_FIXTURES & set(request.fixturenames):
+        yield
+        return
+    with raised_priority(rt_priority=None):
+        yield
 
 
 @pytest.fixture(autouse=True)

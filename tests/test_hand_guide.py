@@ -4,10 +4,10 @@ taught poses written as a task file that loads), and `--teach` end to end on the
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 
 from app.tasks_registry import robot_for
@@ -18,16 +18,6 @@ from tasks.hand_guide import HandGuideConfig, HandGuideTask, taught_task_file
 from tasks.primitives.taskfile import load_task_file
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _reuse_artefacts(tool: str) -> None:
-    """The repository's prepared virtual-sensor artefacts for `tool`, copied into the test's own working folder
-    when present (a test runs in a temporary folder): the run then skips `prepare`, which rebuilds them there
-    when they are missing or do not match."""
-    for kind in ("models", "calibration"):
-        src = ROOT / "artifacts" / kind / tool
-        if src.is_dir() and not (Path("artifacts") / kind / tool).exists():
-            shutil.copytree(src, Path("artifacts") / kind / tool)
 
 
 def _drive(task, robot, forces, dt=0.008):
@@ -83,13 +73,13 @@ def test_taught_poses_make_a_task_file_that_loads(tmp_path):
     assert [s.kind for s in tf.steps] == ["move", "move"]
 
 
+@pytest.mark.usefixtures("prepared_wipe")  # the wipe tool's artefacts, prepared once per run
 def test_teach_on_the_simulated_cell_writes_a_task_file_that_validates_and_replays(tmp_path, capsys):
     """`run hand-guide --teach` end to end: the scripted hand rests the tool at the demo path's three
     corners, the written file loads, and `run task` drives the arm through the taught poses."""
     from app.commands_hand_guide import DEMO_PATH
     from main import main
 
-    _reuse_artefacts("wipe")
     taught = tmp_path / "taught.yaml"
     code = main(["-q", "run", "hand-guide", "--teach", str(taught), "--cell", "sim", "--json", "--no-record"])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -109,8 +99,6 @@ def test_teach_on_the_simulated_cell_writes_a_task_file_that_validates_and_repla
 
 
 def test_a_cell_config_sets_hand_guiding_and_a_bad_value_is_one_line(tmp_path):
-    import pytest
-
     from drivers.errors import ConfigError
     from tasks.hand_guide import load_hand_guide_config
 

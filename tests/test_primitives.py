@@ -90,12 +90,14 @@ def _run(name: str, capsys) -> dict:
     return out
 
 
+@pytest.mark.usefixtures("prepared_peg")  # the peg tool's artefacts, prepared once per run
 def test_edge_find_reports_the_blocks_corner(capsys):
     out = _run("edge-find.yaml", capsys)
     assert out["truth_scores"]["corner"]["error_mm"] <= 0.3
     assert max(s["contact_force_max_n"] for s in out["step_scores"].values()) <= 30.0
 
 
+@pytest.mark.usefixtures("prepared_wipe")  # the wipe tool's artefacts, prepared once per run
 def test_press_slide_holds_and_slides_at_its_forces(capsys):
     out = _run("press-slide.yaml", capsys)
     assert out["force_source"] == "virtual"

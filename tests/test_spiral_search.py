@@ -4,8 +4,9 @@ fixture's hole from an offset start, scored against where the plant has it."""
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
+
+import pytest
 
 from cell.config import load_config
 from main import main
@@ -15,24 +16,14 @@ ROOT = Path(__file__).resolve().parents[1]
 FILE = ROOT / "config" / "tasks" / "spiral-find-hole.yaml"
 
 
-def _reuse_artefacts(tool: str) -> None:
-    """The repository's prepared virtual-sensor artefacts for `tool`, copied into the test's own working folder
-    when present (a test runs in a temporary folder): the run then skips `prepare`, which rebuilds them there
-    when they are missing or do not match."""
-    for kind in ("models", "calibration"):
-        src = ROOT / "artifacts" / kind / tool
-        if src.is_dir() and not (Path("artifacts") / kind / tool).exists():
-            shutil.copytree(src, Path("artifacts") / kind / tool)
-
-
 def test_the_example_loads_with_its_spiral_step():
     cfg = load_config(None)
     tf = load_task_file(FILE, cfg.collision.guarded, cfg.safety.max_tool_force_n)
     assert "spiral_search" in [s.kind for s in tf.steps]
 
 
+@pytest.mark.usefixtures("prepared_peg")  # the peg tool's artefacts, prepared once per run
 def test_spiral_search_finds_the_hole_from_an_offset_start(capsys):
-    _reuse_artefacts("peg")
     code = main(["-q", "run", "task", str(FILE), "--cell", "sim", "--json", "--no-record"])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert code == 0, out.get("reason")
