@@ -203,13 +203,16 @@ def test_bars_off_a_terminal_log_about_every_ten_percent(caplog):
 
 # ----------------------------------------------------------------------------------------- emulate cell
 @pytest.mark.slow
-def test_emulate_cell_serves_on_its_port_with_stdin_closed_until_sigint():
+def test_emulate_cell_serves_on_its_port_with_stdin_closed_until_sigint(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    proc = subprocess.Popen([sys.executable, str(ROOT / "main.py"), "-q", "emulate", "cell", "--port", str(port)],
-                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    # Its log goes to a file: a pipe nobody reads fills up on a busy machine and the child blocks writing to it.
+    log_path = tmp_path / "emulate.log"
+    with open(log_path, "w") as log_file:
+        proc = subprocess.Popen([sys.executable, str(ROOT / "main.py"), "-q", "emulate", "cell", "--port", str(port)],
+                                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log_file, text=True,
+                                cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT), "PYTHONFAULTHANDLER": "1"})
     try:
         assert proc.stdout is not None
         endpoint = json.loads(proc.stdout.readline())
@@ -218,7 +221,13 @@ def test_emulate_cell_serves_on_its_port_with_stdin_closed_until_sigint():
             proc.wait(timeout=1.5)  # stdin closed from the start: still serving
         socket.create_connection(("127.0.0.1", port), timeout=2).close()
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=20) == 0
+        try:
+            code = proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGABRT)  # faulthandler writes every thread's stack to the log
+            proc.wait(timeout=10)
+            pytest.fail(f"emulate cell still running 20 s after SIGINT:\n{log_path.read_text()[-4000:]}")
+        assert code == 0, log_path.read_text()[-2000:]
     finally:
         if proc.poll() is None:
             proc.kill()
