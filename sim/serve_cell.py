@@ -93,10 +93,8 @@ def serve_cell(cfg: CellConfig, seed: int | None, scene: SceneKind, port: int = 
     sensor_faults = FaultConfig()
     quit_asked = threading.Event()
     # The emulated controller and sensor stand for machines with their own CPUs: on a shared host they run at
-    # a raised nice value (where permitted), so a busy machine starves neither side of the wire.  Not in the
-    # real-time class: their asyncio and serial threads would then preempt every ordinary process on the
-    # host, the tests' among them.
-    with raised_priority(rt_priority=None), arm_emulator(cfg, plant, port, listen_port, bind=bind) as arm_emu, \
+    # the control loop's priority (where permitted), so a busy machine starves neither side of the wire.
+    with raised_priority(), arm_emulator(cfg, plant, port, listen_port, bind=bind) as arm_emu, \
             WacohEmulator(plant.true_sensor_wrench, seed=plant.profile.seed, faults=sensor_faults) as sensor_emu:
 
         def fault_commands() -> None:

@@ -212,7 +212,10 @@ def test_emulate_cell_serves_on_its_port_with_stdin_closed_until_sigint(tmp_path
     with open(log_path, "w") as log_file:
         proc = subprocess.Popen([sys.executable, str(ROOT / "main.py"), "-q", "emulate", "cell", "--port", str(port)],
                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log_file, text=True,
-                                cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT), "PYTHONFAULTHANDLER": "1"})
+                                cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT), "PYTHONFAULTHANDLER": "1"},
+                                # The runner may ignore SIGINT (a background job does), and the child would inherit
+                                # that; an operator's shell would not, so restore the default before exec.
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         assert proc.stdout is not None
         endpoint = json.loads(proc.stdout.readline())

@@ -12,9 +12,8 @@ log = logging.getLogger(__name__)
 # A wall-clock loop (emulated or real cell) must keep its period on a shared machine.  First choice: the
 # real-time FIFO class at a low real-time priority, as robot controllers run their loops (it preempts every
 # ordinary process the moment its period is due; it sleeps most of each period, and the kernel's real-time
-# throttling keeps 5 % of the CPU for the rest).  Threads the loop's thread starts inherit it.  Emulators
-# ask for nice alone (rt_priority=None).  Without that right, nice -10 (about nine times an ordinary
-# process's CPU share); without either, as it is.
+# throttling keeps 5 % of the CPU for the rest).  Threads the loop's thread starts inherit it.  Without
+# that right, nice -10 (about nine times an ordinary process's CPU share); without either, as it is.
 LOOP_RT_PRIORITY = 10
 LOOP_NICE = -10
 _warned = False
