@@ -139,8 +139,9 @@ def test_bench_sim_reports_a_real_time_factor(capsys):
     assert main(["-q", "bench", "sim", "--json"]) == 0
     out = last_json(capsys)
     assert out["real_time_factor"] > 1.0 and out["outcomes"] == ["done", "done"]
-    # Its wall time and the machine's load beside it, as every bench reports them.
-    assert out["bench_wall_s"] > 0 and len(out["load_avg_before"]) == 3 and out["cpu_count"] >= 1
+    # Its wall time and the machine's load beside it, as every bench reports them (their values are the machine's).
+    assert {"bench_wall_s", "load_avg_before", "load_avg_after", "cpu_count"} <= out.keys()
+    assert len(out["load_avg_before"]) == 3 and out["cpu_count"] >= 1
 
 
 @pytest.mark.slow
