@@ -67,14 +67,18 @@ def with_guard(cfg: CellConfig, tool: str, cell: OpenCell, robot: RobotModel) ->
                     tool, model_dir, tool)
         return cell
     from cell.collision.guard import build_guard
-    from cell.sensing.virtual_sensor import load_observer_model
+    from cell.sensing.virtual_sensor import VirtualForceSource, load_observer_model
 
-    model = load_observer_model(model_dir, robot, cfg.loop.period_s)
+    # On the virtual sensor's own model the detector shares its observers' model evaluation (one per period).
+    force = cell.force
+    step = (force.model_step if isinstance(force, VirtualForceSource) and force.model_dir == model_dir.resolve()
+            else None)
+    model = step.model if step is not None else load_observer_model(model_dir, robot, cfg.loop.period_s)
     point = np.asarray(cfg.virtual_sensor.wrench_point, float)
 
     def factory(task: str, contact_limit_n: float) -> Any:
         return build_guard(cfg.collision, model, robot, cfg.loop.period_s, task, contact_limit_n, point,
-                           over_wire=cell.kind != "sim")
+                           over_wire=cell.kind != "sim", model_step=step)
 
     return replace(cell, guard=factory)
 

@@ -334,3 +334,63 @@ def test_kalman_measurement_noise_calibrated_by_default(robot_module, fitted):
         for k in range(3):
             obs.update(dataclasses.replace(state, t=k * DT))
         np.testing.assert_array_equal(obs.kf.R, np.diag(calibrated))
+
+
+# ------------------------------------------------------------------------------------------ shared model step
+def _states(robot_module, fitted, n: int = 60, push_nm: float = 4.0) -> list[ArmState]:
+    """Samples of the training motion with a push on joint 2 from the middle on (the load input matters)."""
+    s, p2, _ = fitted
+    out = []
+    for k in range(n):
+        tau = p2.predict_one(s.q[k], s.dq[k], s.ddq[k]).copy()
+        if k >= n // 2:
+            tau[1] += push_nm
+        out.append(ArmState(t=k * DT, q=s.q[k], dq=s.dq[k], tau=tau))
+    return out
+
+
+def test_observers_on_one_step_evaluate_the_model_once_per_sample(robot_module, fitted):
+    from cell.sensing.model_step import ModelStep
+    from cell.sensing.observer import MomentumObserver
+
+    _, _, h1 = fitted
+    states = _states(robot_module, fitted)
+    step = ModelStep(h1, DT)
+    lead = KalmanObserver(h1, DT, np.full(6, 0.04), np.full(6, 1e-3), step=step)
+    follower = MomentumObserver(h1, DT, 50.0, step=step)
+    alone = KalmanObserver(h1, DT, np.full(6, 0.04), np.full(6, 1e-3))
+    follower_alone = MomentumObserver(h1, DT, 50.0)
+    for state in states:
+        np.testing.assert_array_equal(lead.update(state), alone.update(state))  # the lead computes as alone
+        shared, own = follower.update(state), follower_alone.update(state)
+        # The follower's load input is the lead's estimate, not its own: close, not equal.
+        np.testing.assert_allclose(shared, own, atol=0.5)
+    assert step.evaluations == len(states)
+    assert lead.step is follower.step is step and step.lead is lead
+    # The lead not updated on a sample: the follower evaluates it itself.
+    extra = dataclasses.replace(states[-1], t=len(states) * DT)
+    follower.update(extra)
+    assert step.evaluations == len(states) + 1
+    # A follower's reset leaves the lead's stream alone; the lead's restarts it.
+    follower.reset()
+    assert step.fast.derivs._v_prev is not None
+    lead.reset()
+    assert step.fast.derivs._v_prev is None
+
+
+def test_a_follower_reads_the_lead_sample_for_the_same_state_only(robot_module, fitted):
+    from cell.sensing.model_step import ModelStep
+    from cell.sensing.observer import MomentumObserver
+
+    _, _, h1 = fitted
+    a, b = _states(robot_module, fitted, n=2)
+    step = ModelStep(h1, DT)
+    lead = MomentumObserver(h1, DT, 50.0, step=step)
+    follower = MomentumObserver(h1, DT, 50.0, step=step)
+    lead.update(a)
+    follower.update(a)
+    assert step.evaluations == 1
+    # An equal state in another object is another sample (a repeated read is the lead's to judge).
+    follower.update(dataclasses.replace(b))
+    lead.update(b)
+    assert step.evaluations == 3

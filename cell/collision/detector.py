@@ -48,6 +48,7 @@ from cell.collision.config import DetectorSettings
 from cell.model.dynamics.learned import LearnedModel
 from cell.model.dynamics.uncertainty import Coverage
 from cell.model.robot import RobotModel
+from cell.sensing.model_step import ModelStep
 from cell.sensing.observer import MomentumObserver
 from cell.sensing.wrench_map import JacobianMap
 from drivers.errors import SafetyStopError
@@ -113,7 +114,8 @@ class CollisionDetector:
     MOVED_RAD = 0.05
 
     def __init__(self, model: LearnedModel, robot: RobotModel, dt: float, settings: DetectorSettings,
-                 wrench_point: np.ndarray, over_wire: bool = False, exact_steps: bool | None = None) -> None:
+                 wrench_point: np.ndarray, over_wire: bool = False, exact_steps: bool | None = None,
+                 model_step: ModelStep | None = None) -> None:
         n = robot.n
         if len(settings.floor_nm) != n:
             raise ValueError(f"collision.detector.floor_nm needs {n} values (one per joint), "
@@ -128,7 +130,8 @@ class CollisionDetector:
         # them: the observer integrates over the time between the samples as it is, never clipped.
         self.observer = MomentumObserver(model, dt, gain,
                                          max(1, int(round(settings.rebias_window_s / dt))), trapezoid=True,
-                                         exact_steps=over_wire if exact_steps is None else exact_steps)
+                                         exact_steps=over_wire if exact_steps is None else exact_steps,
+                                         step=model_step)
         self.coverage = model.coverage
         # The levels blended by coverage alone (the sticking regime has its own term below).
         self._levels = (dataclasses.replace(model.coverage, blend=True, stick_speed=0.0)

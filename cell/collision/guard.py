@@ -20,6 +20,7 @@ import pinocchio as pin
 from cell.collision.config import CollisionConfig
 from cell.collision.detector import CollisionDetector, Detection
 from cell.model.robot import RobotModel
+from cell.sensing.model_step import ModelStep
 from drivers.errors import SafetyStopError
 from drivers.interfaces import ArmState
 
@@ -244,10 +245,11 @@ class ContactGuard:
 
 
 def build_guard(cfg: CollisionConfig, model: Any, robot: RobotModel, dt: float, task: str, contact_limit_n: float,
-                wrench_point: np.ndarray, over_wire: bool = False) -> ContactGuard | None:
+                wrench_point: np.ndarray, over_wire: bool = False, model_step: ModelStep | None = None) -> ContactGuard | None:
     """The guard for `task` on the hybrid `model` (cell/sensing/virtual_sensor.py load_observer_model), or None
-    when collision detection is switched off."""
+    when collision detection is switched off; `model_step`: the model evaluation it shares with the virtual
+    sensor's observers (cell/sensing/model_step.py), on the same model."""
     if not cfg.enabled:
         return None
-    detector = CollisionDetector(model, robot, dt, cfg.detector, wrench_point, over_wire)
+    detector = CollisionDetector(model, robot, dt, cfg.detector, wrench_point, over_wire, model_step=model_step)
     return ContactGuard(detector, cfg, task, robot, dt, contact_limit_n)

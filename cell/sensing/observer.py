@@ -15,26 +15,20 @@ Two observers on the same hybrid model (H1 = identified P2 + learned residual):
 Both re-bias in free space (arm at rest, no contact): the mean raw estimate over the last
 `rebias_window` samples becomes the zero.
 
-The virtual sensor's observer and the collision detector's run on the same model at the same sample every
-control period: what depends on the sample alone (rigid body, losses, trust, M, C, g) is computed once for
-both (`SampleCache`).  What depends on an observer's own estimate (the learned part's load input) is not.
+The virtual sensor's observers and the collision detector's run on the same model at the same sample every
+control period: the model is evaluated once per sample for all of them (`cell/sensing/model_step.py`).
 """
 
 from __future__ import annotations
 
 import collections
-import hashlib
-import json
-import weakref
-from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
-import pinocchio as pin
 
-from cell.model.dynamics.fastpredict import FastPredictor
 from cell.model.dynamics.learned import LearnedModel
 from cell.sensing.derivatives import FilterConfig
+from cell.sensing.model_step import ModelStep
 from drivers.interfaces import ArmState
 
 
@@ -73,151 +67,6 @@ class _Bias:
     def reset(self) -> None:
         self.ring.clear()
         self.offset[:] = 0.0
-
-
-class SampleCache:
-    """The hybrid model's sample-only parts at the last (q, q', q''), for every observer on that model.
-
-    The virtual sensor's observer and the collision detector's each ran the rigid body, the losses, the
-    trust weights and (momentum observers) M, C and g at the same sample, every period.  Keyed on the
-    exact inputs, a consumer at another sample recomputes: each gets what it would have computed alone.
-    Callers must not modify the returned arrays."""
-
-    def __init__(self, model: LearnedModel) -> None:
-        assert model.physics is not None
-        self.p2 = model.physics
-        self.trust = model.coverage
-        self.pm = self.p2.model
-        self.pd = self.pm.createData()
-        self.B = np.diag(self.p2.params.B_m)
-        # (the sample's key, what was computed there), replaced as one: a reader never pairs one
-        # sample's key with another's results.
-        self._current: tuple[tuple[bytes, ...], dict[str, object]] = ((), {})
-
-    def _get(self, name: str, key: tuple[bytes, ...], make: Callable[[], object]) -> object:
-        current = self._current
-        if current[0] != key:
-            current = (key, {})
-            self._current = current
-        memo = current[1]
-        if name not in memo:
-            memo[name] = make()
-        return memo[name]
-
-    def rigid(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
-        key = (q.tobytes(), dq.tobytes(), ddq.tobytes())
-        return self._get("rigid", key, lambda: self.p2.rigid_one(q, dq, ddq))  # type: ignore[return-value]
-
-    def losses(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
-        key = (q.tobytes(), dq.tobytes(), ddq.tobytes())
-        return self._get("losses", key, lambda: self.p2.losses(q, dq, ddq))  # type: ignore[return-value]
-
-    def losses_at_rest_acceleration(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
-        """The losses without their B_m q'' part (the momentum observer puts the rotor inertia into M)."""
-        key = (q.tobytes(), dq.tobytes(), ddq.tobytes())
-        return self._get("losses0", key,  # type: ignore[return-value]
-                         lambda: self.p2.losses(q, dq, np.zeros_like(ddq)))
-
-    def weight(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
-        assert self.trust is not None
-        trust = self.trust
-        key = (q.tobytes(), dq.tobytes(), ddq.tobytes())
-        return self._get("weight", key, lambda: trust.weight_one(q, dq, ddq))  # type: ignore[return-value]
-
-    def mass_coriolis_gravity(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray
-                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """M(q) + B_m, C(q, q') and g(q) of the identified rigid body (Pinocchio)."""
-        key = (q.tobytes(), dq.tobytes(), ddq.tobytes())
-
-        def make() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            pm, pd = self.pm, self.pd
-            M = pin.crba(pm, pd, q)
-            M = np.triu(M) + np.triu(M, 1).T + self.B
-            C = np.array(pin.computeCoriolisMatrix(pm, pd, q, dq))
-            g = np.array(pin.computeGeneralizedGravity(pm, pd, q))
-            return M, C, g
-        return self._get("mcg", key, make)  # type: ignore[return-value]
-
-
-# Held by the observers that use them: a cache goes with the last observer on its model.
-_CACHES: weakref.WeakValueDictionary[str, SampleCache] = weakref.WeakValueDictionary()
-
-
-def _model_digest(model: LearnedModel) -> str:
-    """What the sample-only parts depend on: the robot, the identified physics and the trust model."""
-    assert model.physics is not None
-    h = hashlib.sha256(model.meta.urdf_sha256.encode())
-    h.update(json.dumps(model.physics.params.to_dict(), sort_keys=True, default=str).encode())
-    trust = model.coverage
-    if trust is not None:
-        for name, value in sorted(vars(trust).items()):
-            h.update(name.encode())
-            h.update(np.asarray(value).tobytes() if isinstance(value, np.ndarray) else repr(value).encode())
-    return h.hexdigest()
-
-
-def sample_cache(model: LearnedModel) -> SampleCache:
-    """The cache every observer on this model (or an identical copy of it: the guard and the virtual sensor
-    load their own) shares."""
-    key = _model_digest(model)
-    cache = _CACHES.get(key)
-    if cache is None:
-        cache = _CACHES[key] = SampleCache(model)
-    return cache
-
-
-class ContactPredictor(FastPredictor):
-    """The hybrid model's free-motion torque while in contact.
-
-    The learned friction of H1 grows with the torque its gears transmit (its `physics_inputs`
-    feature), which the model lab can only see as the rigid-body torque: in free motion that is
-    all they transmit.  In contact the motors also carry the external torque, and so does the
-    friction, so the load input here is rigid + the last external-torque estimate (causal: the
-    previous period's).  With `external` = 0 this is exactly `FastPredictor.predict_one`.
-    """
-
-    def __init__(self, model: LearnedModel, dt: float, filter_cfg: FilterConfig | None = None) -> None:
-        super().__init__(model, dt, filter_cfg)
-        if self.part not in ("full", "rigid") or self.p2 is None:
-            raise ValueError(f"the observers need a hybrid model with the rigid body (H1, H2), got {model.kind}")
-        # The model's own uncertainty at the last sample [N·m]^2, kept when `want_variance` (NaN otherwise,
-        # and without a coverage model).
-        self.want_variance = False
-        self.variance = np.full(self.n, np.nan)
-        self.shared = sample_cache(model)
-
-    def parts_contact(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray,
-                      external: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(rigid-body torque, learned torque) for one sample; the hybrid's torque is their sum plus
-        the losses when the model's physics part is `full`."""
-        assert self.p2 is not None
-        x = self._x
-        x[:self._nw] = self.window.push(q, dq, ddq)
-        rigid = self.shared.rigid(q, dq, ddq)
-        if self._has_extra:
-            x[self._nw:] = self._derived(q, dq, rigid + external)
-        learned = np.zeros_like(rigid)
-        learned[self.outputs] = self.forest.predict(x)
-        trust = self.model.coverage
-        if trust is not None and (trust.gates or self.want_variance):
-            w = self.shared.weight(q, dq, ddq) if trust.gates else np.ones(self.n)
-            if self.coverage is not None:  # a blending model (H1) whose trust can fall: the learned part by it
-                learned *= w
-            if self.want_variance:
-                self.variance = trust.sigma(dq[None, :], w[None, :])[0] ** 2
-        return rigid, learned
-
-    def predict_contact(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, external: np.ndarray) -> np.ndarray:
-        assert self.p2 is not None
-        rigid, learned = self.parts_contact(q, dq, ddq, external)
-        tau = rigid + learned
-        if self.part == "full":
-            tau += self.shared.losses(q, dq, ddq)
-        return tau
-
-    def step_contact(self, q: np.ndarray, dq: np.ndarray | None, external: np.ndarray) -> np.ndarray:
-        v, a = self.derivs.step(q, dq)
-        return self.predict_contact(np.asarray(q, float), v, a, external)
 
 
 class DiagonalKalman:
@@ -285,8 +134,9 @@ class KalmanObserver:
 
     measurement_var: (n,) R, the variance of the model's residual in free motion [N·m]^2;
     process_var: (n,) Q, the random-walk variance per period [N·m]^2 (how fast a contact may change);
-    model_noise: R raised each period to the model's own variance there (`ContactPredictor.variance`),
-      when the model has one.
+    model_noise: R raised each period to the model's own variance there (`FreeMotion.variance`), when the
+      model has one;
+    step: the model evaluation it shares with the cell's other observers (its own when None).
     """
 
     kind = "kalman"
@@ -294,10 +144,12 @@ class KalmanObserver:
 
     def __init__(self, model: LearnedModel, dt: float, measurement_var: np.ndarray, process_var: np.ndarray,
                  rebias_samples: int = 25, filter_cfg: FilterConfig | None = None, gate: float = 3.0,
-                 model_noise: bool = False) -> None:
-        self.fast = ContactPredictor(model, dt, filter_cfg)
+                 model_noise: bool = False, step: ModelStep | None = None) -> None:
+        self.step = step if step is not None else ModelStep(model, dt, filter_cfg)
+        self.step.join(self)
         self.model_noise = model_noise and model.coverage is not None
-        self.fast.want_variance = self.model_noise
+        if self.model_noise:
+            self.step.want_variance()
         self.gate = gate
         self.n = n = model.forest.n
         self.R = np.asarray(measurement_var, float).reshape(n)
@@ -308,16 +160,18 @@ class KalmanObserver:
         self.reset()
 
     def reset(self) -> None:
-        self.fast.reset()
+        self.step.reset(self)
         self.bias.reset()
         self.kf.x = np.zeros((self.n, 1))
         self.kf.P = np.diag(self.R)  # start as uncertain as one measurement
         self._started = False
-        self._estimate = np.zeros(self.n)  # the last external torque estimate (the gears carry it too)
         self._run = np.zeros(self.n)  # signed count of consecutive same-signed gated innovations
 
     def update(self, state: ArmState) -> np.ndarray:
-        tau_free = self.fast.step_contact(state.q, state.dq, self._estimate)
+        sample = self.step.at(state, self)
+        tau_free = sample.rigid + sample.learned
+        if self.step.part == "full":
+            tau_free += self.step.shared.losses(sample.q, sample.v, sample.a)
         raw = np.asarray(state.tau, float) - tau_free
         self.bias.push(raw)
         z = raw - self.bias.offset
@@ -325,7 +179,7 @@ class KalmanObserver:
         kf = self.kf
         R = self.R
         if self.model_noise:
-            R = np.maximum(self.R, self.fast.variance)
+            R = np.maximum(self.R, sample.variance)
             kf.R = np.diag(R)
         if not self._started:  # the first sample is the best initial state there is
             kf.x = z.reshape(-1, 1).copy()
@@ -348,7 +202,7 @@ class KalmanObserver:
                 z = np.where(clip, x + np.clip(y, -bound, bound), z)
             kf.update(z.reshape(-1, 1))
         out = np.asarray(kf.x, float).reshape(-1).copy()
-        self._estimate = out
+        self.step.publish(self, out)
         return out
 
     def rebias(self) -> None:
@@ -369,14 +223,16 @@ class MomentumObserver:
     kind = "momentum"
 
     def __init__(self, model: LearnedModel, dt: float, gain: float | np.ndarray, rebias_samples: int = 25,
-                 filter_cfg: FilterConfig | None = None, trapezoid: bool = False, exact_steps: bool = False) -> None:
+                 filter_cfg: FilterConfig | None = None, trapezoid: bool = False, exact_steps: bool = False,
+                 step: ModelStep | None = None) -> None:
         self.trapezoid = trapezoid  # integrate the torques by the trapezoidal rule (rectangle: False)
         # A log's own clock (the controller's time stamps) is the true step, however irregular: integrate
         # over it unclipped.  Off, a step is clipped to [0.25, 4] periods (a host's read times jitter).
         self.exact_steps = exact_steps
         if model.physics is None:
             raise ValueError("the momentum observer needs a model with a physics part (H1)")
-        self.fast = ContactPredictor(model, dt, filter_cfg)
+        self.step = step if step is not None else ModelStep(model, dt, filter_cfg)
+        self.step.join(self)
         self.p2 = model.physics
         self.n = n = model.forest.n
         self.dt = dt
@@ -386,25 +242,24 @@ class MomentumObserver:
         self.reset()
 
     def reset(self) -> None:
-        self.fast.reset()
+        self.step.reset(self)
         self.bias.reset()
         self.r = np.zeros(self.n)
         self.integral = np.zeros(self.n)
         self._beta: np.ndarray | None = None
         self._t: float | None = None
         self.p0: np.ndarray | None = None
-        self._estimate = np.zeros(self.n)
         self.inertial = np.zeros(self.n)
         self.acceleration = np.zeros(self.n)
         self.mass = np.zeros((self.n, self.n))  # M(q) + B_m at the last sample
 
     def update(self, state: ArmState) -> np.ndarray:
-        q = np.asarray(state.q, float)
-        v, a = self.fast.derivs.step(q, state.dq)
+        sample = self.step.at(state, self)
+        q, v, a = sample.q, sample.v, sample.a
         # The learned residual: the hybrid's torque minus its physics part (both on the same sample).
-        _, residual = self.fast.parts_contact(q, v, a, self._estimate)
-        shared = self.fast.shared
-        if self.fast.part != "full":  # the learned part covers the losses too
+        residual = sample.learned
+        shared = self.step.shared
+        if self.step.part != "full":  # the learned part covers the losses too
             residual = residual - shared.losses(q, v, a)
         losses = shared.losses_at_rest_acceleration(q, v, a)  # without B_m q'': the rotor inertia joins M below
         M, C, g = shared.mass_coriolis_gravity(q, v, a)
@@ -435,7 +290,7 @@ class MomentumObserver:
         self.bias.push(raw)
         out = raw - self.bias.offset
         self.raw = out
-        self._estimate = out
+        self.step.publish(self, out)
         return out
 
     def rebias(self) -> None:
@@ -444,12 +299,13 @@ class MomentumObserver:
 
 def make_observer(kind: str, model: LearnedModel, dt: float, measurement_var: np.ndarray,
                   process_noise_nm: np.ndarray, momentum_gain: float, rebias_window_s: float,
-                  gate: float = 3.0, model_noise: bool = False) -> TorqueObserver:
-    """The configured observer (`virtual_sensor.observer`; `model_noise`: measurement_noise "model")."""
+                  gate: float = 3.0, model_noise: bool = False, step: ModelStep | None = None) -> TorqueObserver:
+    """The configured observer (`virtual_sensor.observer`; `model_noise`: measurement_noise "model"), on the
+    shared model `step` when given."""
     samples = max(1, int(round(rebias_window_s / dt)))
     if kind == "kalman":
         return KalmanObserver(model, dt, measurement_var, np.asarray(process_noise_nm, float) ** 2, samples,
-                              gate=gate, model_noise=model_noise)
+                              gate=gate, model_noise=model_noise, step=step)
     if kind == "momentum":
-        return MomentumObserver(model, dt, momentum_gain, samples)
+        return MomentumObserver(model, dt, momentum_gain, samples, step=step)
     raise ValueError(f"unknown observer {kind!r} (kalman or momentum)")

@@ -27,6 +27,7 @@ from cell.model.dynamics.base import ModelMeta
 from cell.model.dynamics.learned import LearnedModel
 from cell.model.dynamics.rigid_body import urdf_sha256
 from cell.model.robot import RobotModel
+from cell.sensing.model_step import ModelStep
 from cell.sensing.observer import TorqueObserver, make_observer
 from cell.sensing.wrench_map import LEARNED_INPUTS, ContactMap, JacobianMap, LearnedMap
 from drivers.configio import json_default, read_versioned_json
@@ -157,8 +158,12 @@ class VirtualForceSource:
     name = "virtual"
 
     def __init__(self, observer: TorqueObserver, mapping: JacobianMap | LearnedMap, label: str = "",
-                 zero_at_tare: bool = True, touch: TorqueObserver | None = None, touch_band_n: float = 0.0) -> None:
+                 zero_at_tare: bool = True, touch: TorqueObserver | None = None, touch_band_n: float = 0.0,
+                 model_step: ModelStep | None = None) -> None:
         self.observer = observer
+        # The model evaluation its observers share, for a collision detector on the same model to join.
+        self.model_step = model_step
+        self.model_dir: Path | None = None  # where its model was loaded from (build_virtual_source)
         # The fast channel for touches (VirtualSensorConfig.touch_gain), used while `contact_expected()`
         # (set by whoever knows the task's state: the runner, replay) says a touch may come.
         self.touch = touch
@@ -251,15 +256,20 @@ def build_virtual_source(cfg: VirtualSensorConfig, robot: RobotModel, tool: str,
     model = load_observer_model(model_dir, robot, dt)
     cal = load_calibration(calibration_dir, robot, tool, model_dir, model)
     own = cfg.for_tool(tool)
-    return source_from(own, robot, dt, model, cal, observer or own.observer, mapping or own.mapping,
-                       str(calibration_dir))
+    source = source_from(own, robot, dt, model, cal, observer or own.observer, mapping or own.mapping,
+                         str(calibration_dir))
+    source.model_dir = model_dir.resolve()
+    return source
 
 
 def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: LearnedModel, cal: Calibration,
                 observer: str, mapping: str, where: str = "calibration") -> VirtualForceSource:
+    # One model evaluation per period for the observer, its touch channel and (app/sensing.py with_guard) the
+    # collision detector: the main observer leads it.
+    step = ModelStep(model, dt)
     obs = make_observer(observer, model, dt, np.asarray(cal.measurement_var), np.asarray(cfg.process_noise_nm),
                         cfg.momentum_gain, cfg.rebias_window_s, cfg.innovation_gate,
-                        model_noise=cfg.measurement_noise == "model")
+                        model_noise=cfg.measurement_noise == "model", step=step)
     wmap: JacobianMap | LearnedMap
     if mapping == "contact":
         wmap = contact_map(cfg, robot, np.asarray(cal.measurement_var))
@@ -273,8 +283,9 @@ def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: L
     else:
         raise DataError(f"unknown wrench mapping {mapping!r} (jacobian, learned or contact)")
     touch = (make_observer("momentum", model, dt, np.asarray(cal.measurement_var), np.asarray(cfg.process_noise_nm),
-                           cfg.touch_gain, cfg.rebias_window_s) if cfg.touch_gain > 0 else None)
-    return VirtualForceSource(obs, wmap, zero_at_tare=cfg.zero_at_tare, touch=touch, touch_band_n=cfg.touch_band_n)
+                           cfg.touch_gain, cfg.rebias_window_s, step=step) if cfg.touch_gain > 0 else None)
+    return VirtualForceSource(obs, wmap, zero_at_tare=cfg.zero_at_tare, touch=touch, touch_band_n=cfg.touch_band_n,
+                              model_step=step)
 
 
 def contact_map(cfg: VirtualSensorConfig, robot: RobotModel, joint_var: np.ndarray) -> ContactMap:
