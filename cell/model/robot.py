@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -85,24 +86,30 @@ class RobotModel:
         max_step: float = 0.2,
     ) -> tuple[np.ndarray, bool]:
         """Damped least-squares IK on the TCP.  Returns (q, converged); q stays within limits."""
+        # The control loop solves one pose per period: the per-iteration work is kept to Pinocchio's and two
+        # small products (norms as sqrt(x.x), numpy's own arithmetic for a vector, without its checks).
+        m, d, tcp = self.model, self.data, self.tcp_id
+        lower, upper = m.lowerPositionLimit, m.upperPositionLimit
+        regularise = damping * np.eye(6)
+        local = pin.ReferenceFrame.LOCAL
         q = np.array(q_seed, float)
-        lim = self.limits
         for _ in range(iters):
             err = self.pose_error(q, target)
-            if np.linalg.norm(err) < tol:
+            if math.sqrt(err.dot(err)) < tol:
                 return q, True
-            J = pin.computeFrameJacobian(self.model, self.data, q, self.tcp_id, pin.ReferenceFrame.LOCAL)
-            J = pin.Jlog6(self._last_err_se3) @ J
-            dq = -J.T @ np.linalg.solve(J @ J.T + damping * np.eye(6), err)
-            norm = np.linalg.norm(dq)
+            J = pin.Jlog6(self._last_err_se3) @ pin.computeFrameJacobian(m, d, q, tcp, local)
+            dq = -J.T @ np.linalg.solve(J @ J.T + regularise, err)
+            norm = math.sqrt(dq.dot(dq))
             if norm > max_step:
                 dq *= max_step / norm
-            q = np.clip(q + dq, lim.lower, lim.upper)
-        return q, bool(np.linalg.norm(self.pose_error(q, target)) < tol)
+            q = np.clip(q + dq, lower, upper)
+        err = self.pose_error(q, target)
+        return q, bool(math.sqrt(err.dot(err)) < tol)
 
     def pose_error(self, q: np.ndarray, target: pin.SE3) -> np.ndarray:
         """log6(target^-1 * current) in the TCP frame (6,)."""
-        current = self.tcp_pose(q)
+        pin.forwardKinematics(self.model, self.data, q)
+        current = pin.updateFramePlacement(self.model, self.data, self.tcp_id)
         self._last_err_se3 = target.actInv(current)
         return np.asarray(pin.log6(self._last_err_se3).vector)
 
