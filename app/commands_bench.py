@@ -87,21 +87,44 @@ class Bench:
     tags: Callable[[argparse.Namespace], list[str]] = _no_tags
 
 
-def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
-    """Randomised insertions on the simulated cell with the force source `run` would use for the peg."""
-    from bench.peg import bench_peg
+def _peg_setup(args: argparse.Namespace) -> tuple[Any, Any, Any, Callable[[OpenCell], OpenCell]]:
+    """(cell config, robot, peg config, the cell's force source and guard) as `bench peg-in-hole` runs them."""
     from tasks.peg.config import load_peg_config
 
     cfg = load_cell_config(args)
     robot = robot_for(cfg, "peg")
     pcfg = load_peg_config(cfg.tasks.get("peg"), f"{cfg.source}: tasks.peg", args.force_source)
-    check_task_speeds(cfg, "peg", pcfg)
-    if args.force_source == "virtual":
-        ensure_virtual_artefacts(cfg, "peg", "sim", robot)
 
     def wrap(cell: OpenCell) -> OpenCell:
         return with_guard(cfg, "peg", make_force_source(cfg, args.force_source, "peg", cell, robot), robot)
 
+    return cfg, robot, pcfg, wrap
+
+
+# What a worker process needs of the command line to build the same set-up (plain data: it is pickled).
+_PEG_RECIPE = ("config", "plant", "force_source", "peg_diameter_mm")
+
+
+def _peg_worker_setup(recipe: dict[str, Any]) -> tuple[Any, ...]:
+    return _peg_setup(argparse.Namespace(**recipe))
+
+
+def _peg_worker_trial(setup: tuple[Any, ...], job: tuple[Any, float | None]) -> Any:
+    from bench.peg import run_trial
+
+    cfg, robot, pcfg, wrap = setup
+    draw, peg_diameter = job
+    return run_trial(cfg, robot, pcfg, draw.offset, draw.tilt, draw.seed, peg_diameter, wrap, index=draw.index)
+
+
+def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
+    """Randomised insertions on the simulated cell with the force source `run` would use for the peg."""
+    from bench.peg import TrialDraw, bench_peg
+
+    cfg, robot, pcfg, wrap = _peg_setup(args)
+    check_task_speeds(cfg, "peg", pcfg)
+    if args.force_source == "virtual":
+        ensure_virtual_artefacts(cfg, "peg", "sim", robot)
     if args.trials < 1 or args.max_offset_mm < 0 or args.max_tilt_deg < 0:
         raise ConfigError("bench peg-in-hole: --trials must be >= 1, --max-offset-mm and --max-tilt-deg >= 0")
     if args.only is not None and not all(0 <= k < args.trials for k in args.only):
@@ -118,11 +141,21 @@ def bench_peg_in_hole(args: argparse.Namespace) -> dict[str, Any]:
 
         record = new_run_dir(Path(cfg.recording.directory), "bench-peg")
         log.info("recording every trial under %s", record)
+    peg_diameter = args.peg_diameter_mm * 1e-3 if args.peg_diameter_mm else None
+    jobs = min(args.jobs, len(args.only) if args.only is not None else args.trials)
+    runner = None
+    if jobs > 1 and view is None and record is None:
+        from app.trial_pool import run_pooled
+
+        recipe = {key: getattr(args, key, None) for key in _PEG_RECIPE}
+
+        def runner(draws: list[TrialDraw]) -> Any:
+            return run_pooled([(d, peg_diameter) for d in draws], jobs, _peg_worker_setup, recipe, _peg_worker_trial)
     out = bench_peg(cfg, robot, pcfg, args.trials, args.seed if args.seed is not None else 0,
                     only=args.only, record=record,
                     max_offset_m=args.max_offset_mm * 1e-3, max_tilt_deg=args.max_tilt_deg,
-                    peg_diameter=args.peg_diameter_mm * 1e-3 if args.peg_diameter_mm else None,
-                    wrap=wrap, force_source=args.force_source, view=view)
+                    peg_diameter=peg_diameter, wrap=wrap, force_source=args.force_source, view=view, runner=runner)
+    out["jobs"] = jobs if runner is not None else 1
     if view is not None:
         from app.view import finish_view
 
@@ -347,6 +380,9 @@ def _bench_options(name: str, b: argparse.ArgumentParser) -> None:
                        help="run only these trial numbers (the same draws as in the full bench; default: all)")
         b.add_argument("--record", action="store_true",
                        help="log every trial run (runs/<date>-bench-peg/trial_NNN, as `run` logs)")
+        b.add_argument("--jobs", type=COUNT, default=os.cpu_count() or 1,
+                       help="trials run at once, one worker process each (default: the machine's cores); "
+                       "the figures do not depend on it, only the wall time (--record and --view run one)")
         from app.view import add_view_options
 
         add_view_options(b, "one trial (--only K)")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -188,30 +188,61 @@ def run_trial(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, offset: np.nd
     )
 
 
-def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, seed: int,
-              max_offset_m: float = 0.002, max_tilt_deg: float = 2.0, peg_diameter: float | None = None,
-              wrap: CellWrapper | None = None, force_source: str = "sensor", only: list[int] | None = None,
-              record: Path | None = None, view: Any | None = None) -> dict[str, Any]:
-    """`trials` insertions with the hole offset uniformly in +-max_offset_m on x and y and tilted uniformly
-    in +-max_tilt_deg about x and y (independently), each on a fresh plant: the same arm (the profile's
-    specimen), its own noise seeded from `seed`.  `only` runs just those trial indices (same draws, to
-    look at one again); `record` logs every trial run to `record`/trial_NNN (the `run` log format)."""
+@dataclass(frozen=True)
+class TrialDraw:
+    """One trial's draw: the fixture's offset (m) and tilt (rad), and the plant's noise seed."""
+
+    index: int
+    offset: np.ndarray
+    tilt: np.ndarray
+    seed: int
+
+
+# Runs the draws (on worker processes, say) and yields their trials in any order.
+TrialRunner = Callable[[list[TrialDraw]], Iterator[Trial]]
+
+
+def trial_draws(trials: int, seed: int, max_offset_m: float, max_tilt_deg: float,
+                only: list[int] | None = None) -> list[TrialDraw]:
+    """The bench's draws, trial by trial from one generator (`only`: just those trials, the same draws)."""
     rng = np.random.default_rng(seed)
-    results: list[Trial] = []
-    wall0 = time.perf_counter()
-    bar = tqdm(total=len(only) if only is not None else trials, desc="bench peg-in-hole", unit="trial")
+    draws = []
     for i in range(trials):
         offset = rng.uniform(-max_offset_m, max_offset_m, 2)
         tilt = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
-        if only is not None and i not in only:
-            continue
-        tr = run_trial(cfg, robot, pcfg, offset, tilt, seed * 1000 + i, peg_diameter, wrap,
-                       record / f"trial_{i:03d}" if record is not None else None, index=i, view=view)
-        log.info("trial %d: %s in %s s (offset %s mm, tilt %s deg, %d probes, %d realignments) %s", i,
+        if only is None or i in only:
+            draws.append(TrialDraw(i, offset, tilt, seed * 1000 + i))
+    return draws
+
+
+def bench_peg(cfg: CellConfig, robot: RobotModel, pcfg: PegConfig, trials: int, seed: int,
+              max_offset_m: float = 0.002, max_tilt_deg: float = 2.0, peg_diameter: float | None = None,
+              wrap: CellWrapper | None = None, force_source: str = "sensor", only: list[int] | None = None,
+              record: Path | None = None, view: Any | None = None, runner: TrialRunner | None = None
+              ) -> dict[str, Any]:
+    """`trials` insertions with the hole offset uniformly in +-max_offset_m on x and y and tilted uniformly
+    in +-max_tilt_deg about x and y (independently), each on a fresh plant: the same arm (the profile's
+    specimen), its own noise seeded from `seed`.  `only` runs just those trial indices (same draws, to
+    look at one again); `record` logs every trial run to `record`/trial_NNN (the `run` log format);
+    `runner` runs the draws elsewhere (worker processes): each trial depends on its draw alone."""
+    draws = trial_draws(trials, seed, max_offset_m, max_tilt_deg, only)
+    results: list[Trial] = []
+    wall0 = time.perf_counter()
+
+    def here(draws: list[TrialDraw]) -> Iterator[Trial]:
+        for d in draws:
+            yield run_trial(cfg, robot, pcfg, d.offset, d.tilt, d.seed, peg_diameter, wrap,
+                            record / f"trial_{d.index:03d}" if record is not None else None, index=d.index,
+                            view=view)
+
+    bar = tqdm(total=len(draws), desc="bench peg-in-hole", unit="trial")
+    for tr in (runner or here)(draws):
+        log.info("trial %d: %s in %s s (offset %s mm, tilt %s deg, %d probes, %d realignments) %s", tr.index,
                  "ok" if tr.success else "FAILED", tr.insertion_time_s, np.round(np.array(tr.offset_m) * 1e3, 2),
                  tr.tilt_deg, tr.probes, tr.realignments, tr.reason)
         results.append(tr)
         bar.update()
+    results.sort(key=lambda r: r.index)
     bar.close()
     ok = [r for r in results if r.success]
     times = [r.insertion_time_s for r in ok if r.insertion_time_s is not None]

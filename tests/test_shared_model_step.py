@@ -15,6 +15,7 @@ from cell.config import load_config
 from cell.sensing.virtual_sensor import VirtualForceSource
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("prepared_peg")  # the peg tool's artefacts, prepared once per run
 def test_the_collision_detector_follows_the_virtual_sensors_model_step():
     cfg = load_config()
@@ -42,6 +43,7 @@ def test_the_collision_detector_follows_the_virtual_sensors_model_step():
         holder.close()
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("prepared_peg")
 def test_a_sensor_in_the_loop_leaves_the_detector_its_own_step():
     cfg = load_config()
