@@ -85,8 +85,6 @@ class Plant:
         self._coef = [np.asarray(c, float).tolist() for c in (
             profile.servo.kp, profile.servo.kd, profile.servo.ki, self._fc, self._load, self._effort, self._fs,
             self._vs, self._ra, self._rc, self.ripple_phase)]
-        self._saturation_effort = np.array(self._coef[5])
-        self._joint_coef = list(zip(*(self._coef[i] for i in (0, 1, 2, 3, 4, 5, 7, 8, 9, 10)), strict=True))
         # A real controller faults on sustained motor saturation; so does this one.
         self.saturation_fault_s = 0.024
         self._saturated_s = np.zeros(6)
@@ -158,7 +156,6 @@ class Plant:
         self._qpos, self._qvel, self._bias = d.qpos[arm], d.qvel[arm], d.qfrc_bias[arm]
         self._ctrl = d.ctrl[:12]  # the position servos' references, then the motors' torques
         self._act = d.actuator_force[:12]  # the position servos', then the motors'
-        self._acts = np.zeros((self.substeps, 12))  # each substep's actuator forces, for the saturation check
         self._frictionloss = m.dof_frictionloss[arm]
 
     def _descends(self, body: int, ancestor: int) -> bool:
@@ -244,29 +241,29 @@ class Plant:
         q_refs_l = q_refs.tolist()
         kd_dq_l = (self._kd * dq_refs).tolist()
         ffi_l = ff_inertia.tolist()
-        fs = self._coef[6]
+        kp, kd, ki, fc, load, effort, fs, vs, ra, rc, phase = self._coef
         integral = self._integral
+        sat = self._saturated_s.tolist()
+        peak = self.peak_demand.tolist()
         qpos, qvel, bias, act, ctrl = self._qpos, self._qvel, self._bias, self._act, self._ctrl
-        acts = self._acts
+        ff, coulomb, stick, ripple = [0.0] * 6, [0.0] * 6, [0.0] * 6, [0.0] * 6
         joints = range(6)
         for k in range(n):
             q_ref, kd_dq, ffi = q_refs_l[k], kd_dq_l[k], ffi_l[k]
-            ff, coulomb, stick, ripple = [], [], [], []
-            rows = zip(joints, self._joint_coef, q_ref, qpos.tolist(), qvel.tolist(), bias.tolist(), kd_dq, ffi,
-                       strict=True)
-            for j, (kpj, kdj, kij, fcj, loadj, effortj, vsj, raj, rcj, phasej), qr, qj, vj, bj, kddqj, ffij in rows:
-                e = qr - qj
+            q, v, b = qpos.tolist(), qvel.tolist(), bias.tolist()
+            for j in joints:
+                e = q_ref[j] - q[j]
                 integral[j] += e * h
                 # PD (kp, kd) lives in the position actuators (ctrl[:6] = q_ref); the motors add the
                 # velocity and inertial feedforward, the integral and the controller's own bias model.
-                f = kddqj + kij * integral[j] + bj + ffij
-                ff.append(f)
-                tau_est = kpj * e - kdj * vj + f
+                f = kd_dq[j] + ki[j] * integral[j] + b[j] + ffi[j]
+                ff[j] = f
+                tau_est = kp[j] * e - kd[j] * v[j] + f
                 # Friction (MuJoCo's dry-friction constraint): load-dependent Coulomb, Stribeck, ripple.
-                coulomb.append(fcj * (1.0 + loadj * abs(tau_est) / effortj))
-                x = vj / vsj
-                stick.append(-(x * x))
-                ripple.append(raj * math.sin(rcj * qj + phasej))
+                coulomb[j] = fc[j] * (1.0 + load[j] * abs(tau_est) / effort[j])
+                x = v[j] / vs[j]
+                stick[j] = -(x * x)
+                ripple[j] = ra[j] * math.sin(rc[j] * q[j] + phase[j])
             stick_e = np.exp(stick).tolist()  # numpy's exp: it rounds differently from math.exp
             ctrl[:] = q_ref + ff
             self._frictionloss[:] = [coulomb[j] + fs[j] * stick_e[j] + ripple[j] for j in joints]
@@ -284,19 +281,15 @@ class Plant:
             self._physics_step()
             if self.after_physics_step is not None:
                 self.after_physics_step()
-            acts[k] = act
-        # Motor saturation: |what the servo asked for| over the effort limit, for how long in a row (summed
-        # substep by substep, as the controller's timer counts).
-        demand = np.abs(acts[:, :6] + acts[:, 6:])
-        np.maximum(self.peak_demand, demand.max(axis=0), out=self.peak_demand)
-        over = demand > self._saturation_effort
-        if over.any():
-            sat = self._saturated_s.tolist()
-            for row in over.tolist():
-                sat = [s + h if o else 0.0 for s, o in zip(sat, row, strict=True)]
-            self._saturated_s[:] = sat
-        else:
-            self._saturated_s[:] = 0.0
+            # Motor saturation: |what the servo asked for| over the effort limit, for how long in a row.
+            a = act.tolist()
+            for j in joints:
+                demand = abs(a[j] + a[j + 6])
+                if demand > peak[j]:
+                    peak[j] = demand
+                sat[j] = sat[j] + h if demand > effort[j] else 0.0
+        self._saturated_s[:] = sat
+        self.peak_demand[:] = peak
         self._tau = np.array(d.qfrc_actuator[arm])  # clamped at the effort limit by MuJoCo
         if np.any(self._saturated_s >= self.saturation_fault_s) and not self.status.error:
             j = int(np.argmax(self._saturated_s))
