@@ -107,11 +107,13 @@ class Coverage:
         w = np.ones(len(q))
         min_count = self.min_count if min_count is None else min_count
         if min_count > 0:
-            x = np.stack([q[js], dq[js], ddq[js]], axis=-1)
+            # (Array methods, not numpy's functions: this runs every control period, where their dispatch costs
+            # as much as the arithmetic.)
+            x = np.array((q[js], dq[js], ddq[js])).T
             idx = np.floor((x - self.lo) / self.width).astype(np.int64)
-            inside = np.all((idx >= 0) & (idx < self.bins), axis=-1)
+            inside = ((idx >= 0) & (idx < self.counts.shape[1])).all(axis=-1)
             c = np.zeros(len(js))
-            k = np.flatnonzero(inside)
+            k = inside.nonzero()[0]
             c[k] = self.counts[k, idx[k, 0], idx[k, 1], idx[k, 2]]
             w[js] = np.minimum(1.0, c / min_count)
         if stick and self.stick_speed > 0:
