@@ -44,6 +44,17 @@ def _wrapper(cfg: CellConfig, robot: RobotModel, force_source: str) -> Any:
     return wrap
 
 
+def _inertia(cfg: CellConfig, robot: RobotModel, force_source: str) -> Any:
+    """The arm's Cartesian inertia from the tool's hybrid model (rotors included), with which the task predicts
+    the virtual sensor's read-back of its own commanded acceleration; None for the F/T sensor (no read-back)."""
+    if force_source != "virtual":
+        return None
+    from cell.sensing.virtual_sensor import load_observer_model
+    from tasks.hand_guide import model_inertia
+
+    return model_inertia(robot, load_observer_model(cfg.virtual_sensor.path("model", TOOL), robot, cfg.loop.period_s))
+
+
 def cmd_hand_guide(args: argparse.Namespace) -> int:
     from tasks.hand_guide import taught_task_file
 
@@ -62,7 +73,8 @@ def cmd_hand_guide(args: argparse.Namespace) -> int:
 
         script = HandScript(path=DEMO_PATH, speed_mps=0.05, pause_s=1.5, settle_s=1.5, release_s=2.0)
         summary, hand, task = guided_run(cfg, robot, script, args.seed, _wrapper(cfg, robot, args.force_source),
-                                         record=not args.no_record)
+                                         record=not args.no_record, inertia=_inertia(cfg, robot, args.force_source),
+                                         readback=args.force_source == "virtual")
         figures = hand_guide_figures(hand, task, summary)
         summary.update({k: v for k, v in figures.items() if k not in summary})
     else:
@@ -70,8 +82,11 @@ def cmd_hand_guide(args: argparse.Namespace) -> int:
         from tasks.runner import run_task
 
         hcfg = load_hand_guide_config(cfg.tasks.get("hand_guide"), f"{cfg.source}: tasks.hand_guide")
+        if args.force_source != "virtual":
+            hcfg.inertia_readback = 0.0  # the F/T sensor reads no commanded acceleration back
         try:
-            task = HandGuideTask(hcfg, robot, cfg.loop.period_s, np.asarray(cfg.robot.home, float))
+            task = HandGuideTask(hcfg, robot, cfg.loop.period_s, np.asarray(cfg.robot.home, float),
+                                 inertia=_inertia(cfg, robot, args.force_source))
         except ValueError as exc:
             raise ConfigError(f"{cfg.source}: tasks.hand_guide: {exc}") from None
         cfg.collision.tasks[task.name] = TaskContactSafety(contact_states=["guide"])
@@ -103,4 +118,5 @@ def bench_hand_guide_cmd(args: argparse.Namespace) -> dict[str, Any]:
     cfg = load_cell_config(args)
     robot = robot_for(cfg, TOOL)
     ensure_virtual_artefacts(cfg, TOOL, "sim", robot, args.seed)
-    return bench_hand_guide(cfg, robot, args.seed, _wrapper(cfg, robot, "virtual"))
+    return bench_hand_guide(cfg, robot, args.seed, _wrapper(cfg, robot, "virtual"),
+                            inertia=_inertia(cfg, robot, "virtual"))

@@ -46,11 +46,17 @@ class HandOnTask:
 
 
 def guided_run(cfg: CellConfig, robot: RobotModel, script: HandScript, seed: int | None,
-               wrap: Callable[[OpenCell], OpenCell], record: bool = False) -> tuple[dict[str, Any], SimHand, Any]:
+               wrap: Callable[[OpenCell], OpenCell], record: bool = False,
+               inertia: Callable[[np.ndarray], np.ndarray] | None = None,
+               readback: bool = True) -> tuple[dict[str, Any], SimHand, Any]:
     """Hand guiding on the free simulated scene (the wiping tool) with the scripted hand; the run's summary,
-    the hand (its samples) and the task."""
+    the hand (its samples) and the task.  `inertia`: the arm's Cartesian inertia the task predicts the
+    observer's read-back with (`tasks.hand_guide.model_inertia`); `readback` False: no read-back to predict
+    (a force source other than the virtual sensor)."""
     hcfg = load_hand_guide_config(cfg.tasks.get("hand_guide"), f"{cfg.source}: tasks.hand_guide")
-    task = HandGuideTask(hcfg, robot, cfg.loop.period_s, np.asarray(cfg.robot.home, float))
+    if not readback:
+        hcfg.inertia_readback = 0.0
+    task = HandGuideTask(hcfg, robot, cfg.loop.period_s, np.asarray(cfg.robot.home, float), inertia=inertia)
     # Guiding is contact: the guard reads the hand's force as a tool force (held to the cell's limit), not a collision.
     cfg.collision.tasks[task.name] = TaskContactSafety(contact_states=["guide"])
     holder = make_sim_cell(cfg, robot.limits, seed=seed, scene_kind="free", tool="wipe")
@@ -99,12 +105,12 @@ def hand_guide_figures(hand: SimHand, task: HandGuideTask, summary: dict[str, An
     return out
 
 
-def bench_hand_guide(cfg: CellConfig, robot: RobotModel, seed: int | None,
-                     wrap: Callable[[OpenCell], OpenCell]) -> dict[str, Any]:
+def bench_hand_guide(cfg: CellConfig, robot: RobotModel, seed: int | None, wrap: Callable[[OpenCell], OpenCell],
+                     inertia: Callable[[np.ndarray], np.ndarray] | None = None) -> dict[str, Any]:
     hcfg = load_hand_guide_config(cfg.tasks.get("hand_guide"), f"{cfg.source}: tasks.hand_guide")
     script = HandScript(path=BENCH_PATH, speed_mps=0.1, settle_s=1.5, release_s=10.0,
                         push_n=1.5 * hcfg.max_force_n)
-    summary, hand, task = guided_run(cfg, robot, script, seed, wrap)
+    summary, hand, task = guided_run(cfg, robot, script, seed, wrap, inertia=inertia)
     out = hand_guide_figures(hand, task, summary)
     # Every figure the verdict rests on is reported, null when the run stopped before its phase (a stop
     # while guiding leaves no release to measure): a missing key would read as "not measured", not "failed".

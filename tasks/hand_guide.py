@@ -39,28 +39,53 @@ class HandGuideConfig:
     """`tasks.hand_guide` in the cell config (every field has this default)."""
 
     mass_kg: list[float] = field(default_factory=lambda: [4.0, 4.0, 4.0])  # virtual mass per base axis
-    damping_ns_per_m: list[float] = field(default_factory=lambda: [60.0, 60.0, 60.0])  # virtual damping
+    # Virtual damping: the virtual sensor reads about 0.1 s late (its observer's bandwidth), which a hand of
+    # stiffness K feels as a negative damping of about 0.1 * K (80 N s/m at 800 N/m); 90 keeps the loop
+    # damped at a steady 9 N of the hand's force per 0.1 m/s.
+    damping_ns_per_m: list[float] = field(default_factory=lambda: [90.0, 90.0, 90.0])
     deadband_n: float = 3.0  # |F| under this moves nothing: above the virtual sensor's error at rest
     max_speed_mps: float = 0.15
     # Coming to rest, the joints stick holding the kinetic friction they had, which the model (no friction at
     # zero speed) reads as the hand still pushing along the last motion for a few tenths of a second: for
-    # `rest_hold_s` after the tool stopped, only a force above `restart_n` moves it again (0: off).
-    rest_hold_s: float = 0.3
+    # `rest_hold_s` after the tool stopped, only a force above `restart_n` moves it again (0: off).  The bias
+    # lasts about a second, and a restart within it starts with the joints' break-away, which the observer reads
+    # as a push along the motion: a hand holding a few newtons at rest would creep the tool on in jolts.
+    rest_hold_s: float = 1.0
     restart_n: float = 10.0
+    # The tool coming to rest kicks the reading: as its joints stick, the reading jumps along the last motion
+    # within a few periods and then decays at the observer's bandwidth (14 N with the arm stopped by the F/T
+    # sensor's admittance, up to about 25 N in the virtual sensor's own loop, at the observer's default gain).
+    # After the tool stopped, the force must exceed deadband_n + `rest_kick_n` for `rest_kick_hold_s`, a band
+    # that then decays at `rest_kick_decay_per_s` (the observer's bandwidth: momentum_gain); the force limit
+    # is raised by the same amount, so the kick neither moves nor stops the arm; the collision guard still
+    # watches (0: off).
+    rest_kick_n: float = 25.0
+    rest_kick_hold_s: float = 0.1
+    rest_kick_decay_per_s: float = 10.0
+    # From rest the reading lags the hand the most (the joints' static friction first holds part of the push,
+    # then the observer's lag): until the tool first moves faster than `start_speed_mps`, the damping is
+    # `start_damping_scale` of damping_ns_per_m (1: off), so the arm catches up with the hand.  It applies at
+    # the start and again once the tool has rested `start_after_rest_s`.
+    start_damping_scale: float = 0.5
+    start_speed_mps: float = 0.08
+    start_after_rest_s: float = 0.5
     brake_mps2: float = 1.0  # deceleration to rest on release
     # The admittance's acceleration cap: the virtual sensor reads a fast arm's inertial torques as force
     # (its model's error grows with acceleration), which a light virtual mass would then chase.
     max_accel_mps2: float = 5.0
     max_force_n: float = 30.0  # a guiding force above this stops the arm
-    # The arm's own acceleration read back as a hand force: the virtual sensor's momentum observer gets the
-    # joint torques a period after the positions, so when the arm accelerates it reads about
-    # `inertia_readback` of the arm's inertial force (Cartesian inertia of the controller's model, rotor
-    # inertia included, times the commanded acceleration) against the motion, `inertia_readback_periods`
-    # control periods after the command, then relaxes at the observer's bandwidth (`inertia_readback_decay_per_s`).
-    # The task commands that acceleration, so it adds the predicted reading back before using the force
-    # (0: off).  Uncompensated it closes a loop of gain inertia_readback * inertia / mass_kg with a two-period
-    # delay, which rings at the control rate for a light virtual mass.
-    inertia_readback: float = 0.0
+    # The arm's own acceleration read back as a hand force: when the arm accelerates the virtual sensor's
+    # momentum observer reads about `inertia_readback` of the arm's inertial force (Cartesian inertia of the
+    # controller's model, rotor inertia included, times the commanded acceleration) against the motion,
+    # `inertia_readback_periods` control periods after the command, then relaxes at the observer's bandwidth
+    # (`inertia_readback_decay_per_s`).  The task commands that acceleration, so it adds the predicted reading
+    # back before using the force (0: off).  Uncompensated it closes a loop of gain
+    # inertia_readback * inertia / mass_kg with a two-period delay, which rings at the control rate for a light
+    # virtual mass and makes every stop ring.  Identified on free motion with random accelerations, the
+    # coefficient is about momentum_gain * period (0.075 at 10/s and 8 ms), with the decay at momentum_gain:
+    # both move with the guiding observer's gain.  The inertia must include the rotors' (3-4 times the links'
+    # alone here): the callers pass the hybrid model's (`model_inertia`).
+    inertia_readback: float = 0.075
     inertia_readback_periods: int = 2
     inertia_readback_decay_per_s: float = 10.0
     workspace_min: list[float] = field(default_factory=lambda: [0.2, -0.45, 0.1])
@@ -95,6 +120,11 @@ class HandGuideConfig:
             require(getattr(self, name) > 0, f"{where}.{name}", "must be > 0")
         require(0 <= self.inertia_readback <= 1, f"{where}.inertia_readback", "must lie in [0, 1] (0: off)")
         require(1 <= self.inertia_readback_periods <= 10, f"{where}.inertia_readback_periods", "must lie in 1..10")
+        require(self.rest_kick_n >= 0 and self.rest_kick_hold_s >= 0 and self.rest_kick_decay_per_s >= 0,
+                f"{where}.rest_kick_n", "rest_kick_hold_s and rest_kick_decay_per_s must be >= 0")
+        require(0 < self.start_damping_scale <= 1, f"{where}.start_damping_scale", "must lie in (0, 1] (1: off)")
+        require(self.start_speed_mps >= 0 and self.start_after_rest_s >= 0, f"{where}.start_speed_mps",
+                "and start_after_rest_s must be >= 0")
         require(self.inertia_readback_decay_per_s >= 0, f"{where}.inertia_readback_decay_per_s", "must be >= 0 (1/s)")
 
 
@@ -131,6 +161,12 @@ class CartesianInertia:
         return (Ji.T @ M @ Ji)[:3, :3]
 
 
+def model_inertia(robot: RobotModel, model: Any) -> CartesianInertia:
+    """The Cartesian inertia of a hybrid model's identified rigid body with its rotors (what the observer's
+    read-back of the commanded acceleration scales with)."""
+    return CartesianInertia(robot, model.physics.model, np.asarray(model.physics.params.B_m, float))
+
+
 class HandGuideTask(MachineTask):
     name = "hand-guide"
     regulated_states = ("guide",)
@@ -164,6 +200,9 @@ class HandGuideTask(MachineTask):
         self.taught: list[list[float]] = []  # taught TCP positions [m]
         self._rest_t = 0.0
         self._hold_t = 0.0  # time left of the rest hold (rest_hold_s)
+        self._since_rest = np.inf  # time since the tool last came to rest (braked to zero)
+        self._still_s = np.inf  # how long the admittance's velocity has been zero
+        self._starting = True  # from rest: the start's damping (start_damping_scale)
         self._moved_since_taught = False
         self.stop_force_n: float | None = None
         start = tool_down_pose(np.asarray(cfg.start_xyz, float))
@@ -217,9 +256,15 @@ class HandGuideTask(MachineTask):
             f = f + self.readback
         norm = float(np.linalg.norm(f))
         self.peak_force = max(self.peak_force, norm)
-        if norm > c.max_force_n:
+        # The rest kick (`rest_kick_n`) as it stands now: it raises the band that moves the tool and the limit.
+        self._since_rest += self.dt
+        kick = 0.0
+        if c.rest_kick_n > 0 and np.isfinite(self._since_rest):
+            kick = c.rest_kick_n * float(np.exp(-c.rest_kick_decay_per_s
+                                                * max(0.0, self._since_rest - c.rest_kick_hold_s)))
+        if norm > c.max_force_n + kick:
             self.stop_force_n = norm
-            self.fail_because(f"guiding force {norm:.1f} N above the limit {c.max_force_n:g} N: arm stopped")
+            self.fail_because(f"guiding force {norm:.1f} N above the limit {c.max_force_n + kick:.3g} N: arm stopped")
             self.v[:] = 0.0
             return f
         v_before = self.v.copy()
@@ -227,6 +272,9 @@ class HandGuideTask(MachineTask):
         f_eff = f * max(0.0, 1.0 - c.deadband_n / norm) if norm > 0 else f
         self._hold_t = max(0.0, self._hold_t - self.dt)
         band = c.restart_n if self._hold_t > 0 else c.deadband_n
+        band = max(band, c.deadband_n + kick)
+        if self._still_s >= c.start_after_rest_s:
+            self._starting = True
         if norm <= band:
             # Released: brake to rest, whatever the virtual mass would coast.
             speed = float(np.linalg.norm(self.v))
@@ -234,8 +282,12 @@ class HandGuideTask(MachineTask):
                 self.v *= max(0.0, speed - c.brake_mps2 * self.dt) / speed
                 if not np.any(self.v):
                     self._hold_t = c.rest_hold_s
+                    self._since_rest = 0.0
         else:
-            a = (f_eff - self.damping * self.v) / self.mass
+            if float(np.linalg.norm(self.v)) > c.start_speed_mps:
+                self._starting = False
+            damping = self.damping * c.start_damping_scale if self._starting else self.damping
+            a = (f_eff - damping * self.v) / self.mass
             na = float(np.linalg.norm(a))
             if na > c.max_accel_mps2:
                 a *= c.max_accel_mps2 / na
@@ -247,6 +299,7 @@ class HandGuideTask(MachineTask):
         clipped = np.clip(p, self.lo, self.hi)
         self.v[clipped != p] = 0.0  # at the workspace's wall: stop along that axis
         self.ref.translation = clipped
+        self._still_s = 0.0 if np.any(self.v) else self._still_s + self.dt
         self._predict_readback(obs, (self.v - v_before) / self.dt)
         self._teach(obs)
         return f

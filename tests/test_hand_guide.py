@@ -37,10 +37,10 @@ def _drive(task, robot, forces, dt=0.008):
     return np.array(out)
 
 
-def _task():
+def _task(**settings):
     cfg = load_config(None)
     robot = robot_for(cfg, "wipe")
-    task = HandGuideTask(HandGuideConfig(), robot, 0.008, np.asarray(cfg.robot.home, float))
+    task = HandGuideTask(HandGuideConfig(**settings), robot, 0.008, np.asarray(cfg.robot.home, float))
     task.move = None
     task.state = type(task.state)["TARE"]  # skip the move to the start: the ideal arm starts there
     return task, robot
@@ -62,6 +62,38 @@ def test_release_brakes_to_rest_and_a_force_over_the_limit_stops():
     assert np.linalg.norm(after[-1] - after[-30]) < 1e-6  # at rest well within 100 periods
     _drive(task, robot, [[0.0, 0.0, -40.0]] * 5)
     assert task.outcome == "failed" and "above the limit" in task.reason
+
+
+def test_the_kick_after_a_stop_neither_moves_nor_stops_the_tool_and_fades():
+    """Just after the tool came to rest a reading along the last motion (the joints' stick) is held, and the
+    force limit is raised by the same band; once the band and the rest hold have passed, a smaller force moves
+    the tool and a force above the limit stops it."""
+    task, robot = _task(inertia_readback=0.0)
+    # 0.1 m/s, then braked to rest at 1 m/s^2 within 13 periods.
+    _drive(task, robot, [[0.0, 0.0, 0.0]] * 70 + [[0.0, 12.0, 0.0]] * 200 + [[0.0, 0.0, 0.0]] * 14)
+    assert not np.any(task.v)
+    # (Each drive starts the ideal arm at the start posture: a few periods bring it back to the reference.)
+    held = _drive(task, robot, [[0.0, 0.0, 0.0]] * 4 + [[0.0, 25.0, 0.0]] * 8)
+    assert np.linalg.norm(held[-1] - held[3]) < 1e-6 and not task.done
+    _drive(task, robot, [[0.0, 40.0, 0.0]] * 2)
+    assert not task.done  # above the limit, within the kick's band above it
+    _drive(task, robot, [[0.0, 0.0, 0.0]] * 160)  # to rest again, and past the hold
+    moved = _drive(task, robot, [[0.0, 20.0, 0.0]] * 50)
+    assert moved[-1][1] - moved[0][1] > 0.005
+    _drive(task, robot, [[0.0, 0.0, -40.0]] * 5)
+    assert task.outcome == "failed" and "above the limit" in task.reason
+
+
+def test_from_rest_the_damping_is_lighter_until_the_tool_moves():
+    """The start's damping (start_damping_scale) lets a steady push from rest drive the tool faster than the
+    full damping would, as long as the tool stays below start_speed_mps."""
+    speeds = {}
+    for scale in (0.5, 1.0):
+        task, robot = _task(inertia_readback=0.0, start_damping_scale=scale)
+        _drive(task, robot, [[0.0, 0.0, 0.0]] * 70 + [[0.0, 6.0, 0.0]] * 300)
+        speeds[scale] = float(np.linalg.norm(task.v))
+    assert speeds[1.0] == pytest.approx(3.0 / 90.0, rel=0.05)  # (6 N - deadband) / damping
+    assert speeds[0.5] == pytest.approx(3.0 / 45.0, rel=0.05)
 
 
 def test_taught_poses_make_a_task_file_that_loads(tmp_path):
