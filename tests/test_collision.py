@@ -166,6 +166,37 @@ def test_a_joint_that_moved_since_the_zeroing_gets_twice_its_friction_band_at_re
     assert np.allclose(d.thresholds(q, rest, rest), still, atol=1e-3)
 
 
+def test_a_joint_its_command_holds_keeps_its_band_and_the_models_creep_friction_while_dragged(vs, model):
+    d = _guard(vs, model, payload_uncertainty_kg=0.0).detector
+    robot, dt = vs["robot"], vs["cfg"].loop.period_s
+    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    no_stick = _guard(vs, model, payload_uncertainty_kg=0.0, stick_speed=0.0).detector
+    band = model.coverage.static_band
+    stick = d.settings.stick_speed
+    # Joints 1-3 commanded at speed, the wrist commanded still; the base joints' accelerations drag joint 4
+    # to a creep of 0.6 stick_speed (measured), while its servo holds it.
+    v_cmd = np.array([0.5, -0.5, 0.5, 0.0, 0.0, 0.0])
+    for k in range(d.settings.command_window_periods + 2):
+        d.commanded(q + v_cmd * k * dt)
+        no_stick.commanded(q + v_cmd * k * dt)
+    dq = np.array([0.5, -0.5, 0.5, 0.6 * stick, 0.0, 0.0])
+    extra = d.thresholds(q, dq, np.zeros(6)) - no_stick.thresholds(q, dq, np.zeros(6))
+    creep = np.abs(d._creep_friction(q, dq, v_cmd))
+    assert creep[3] > 0.5 * band[3]  # a creep of a few mrad/s already reads as most of the Coulomb level
+    assert np.isclose(extra[3], band[3] + creep[3])  # held: the full band plus what the model claims there
+    assert np.allclose(extra[:3], 0.0)  # commanded and moving: the model's friction applies
+    # An impact that stops a joint its command moves: the band as the measured speed says, nothing more.
+    stopped = dq.copy()
+    stopped[0] = 0.0
+    extra = d.thresholds(q, stopped, np.zeros(6)) - no_stick.thresholds(q, stopped, np.zeros(6))
+    assert np.isclose(extra[0], band[0])
+    # Without a command stream (a detector fed states only) the measured creep speed alone fades the band.
+    plain = _guard(vs, model, payload_uncertainty_kg=0.0).detector
+    plain_ns = _guard(vs, model, payload_uncertainty_kg=0.0, stick_speed=0.0).detector
+    extra = plain.thresholds(q, dq, np.zeros(6)) - plain_ns.thresholds(q, dq, np.zeros(6))
+    assert np.isclose(extra[3], 0.4 * band[3])
+
+
 def test_beyond_the_trained_speeds_the_thresholds_grow_with_speed(vs, model):
     d = _guard(vs, model).detector
     robot = vs["robot"]

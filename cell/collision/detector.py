@@ -5,7 +5,7 @@ The residual r (N·m, the external joint torque in the cell's convention) comes 
 momentum observer of its own, with a far higher bandwidth than the virtual sensor's (that one is tuned
 for steady contact forces and filters short impacts away).  Per joint the threshold is
 
-    thr_j = floor_j + sigma_factor * sigma_j(|q'_j|) + band_j * max(0, 1 - |q'_j| / stick_speed)
+    thr_j = floor_j + sigma_factor * sigma_j(|q'_j|) + band_j * held_j + |f_j(q'_j)| * held_cmd_j
             + inertia * max(|(M(q) q'')_j|, |(M(q) q''_cmd)_j|)
             + payload_kg * (|g1_j(q) - g1_j(q_zero)| + sum_i |J_ij| |a_i|)
 
@@ -14,7 +14,15 @@ for steady contact forces and filters short impacts away).  Per joint the thresh
   level where the training data did not cover the joint's (q, q', q'');
 * band_j: the joint's static friction band (the model's Coulomb level): a joint at or near rest holds
   whatever torque its friction allows, which no model of the state predicts; twice that for a joint that has
-  moved since the residual was zeroed (its friction may stick as far as the band's other edge);
+  moved since the residual was zeroed (its friction may stick as far as the band's other edge).  held_j is
+  the larger of max(0, 1 - |q'_j| / stick_speed) and held_cmd_j: a joint its command holds stays in its band
+  while the other joints' accelerations drag it into a creep;
+* f_j(q'_j): the friction the model predicts from the measured speed beyond what it predicts at the commanded
+  speed, a full Coulomb level for a joint commanded still that creeps a few mrad/s, which a held joint's
+  friction need not follow.  held_cmd_j = max(0, 1 - |q'_cmd,j| / v_held) x clip(2 - |q'_j| / stick_speed, 0, 1):
+  commanded still (v_held: the width of the model's smoothed friction sign), and creeping rather than jolted
+  into sliding; so an impact that stops a joint its command moves, or jolts a held one, does not widen its own
+  threshold (0 without a command stream: a detector fed states only cannot tell a held joint);
 * inertia: the relative error of the rigid body's inertial torque (mass errors, and the measured
   torque's latency against the joint positions, which shows while the arm accelerates).  q'' is the
   causal estimate from the measured speeds, q''_cmd the largest commanded acceleration of the last few
@@ -137,6 +145,10 @@ class CollisionDetector:
         self._levels = (dataclasses.replace(model.coverage, blend=True, stick_speed=0.0)
                         if model.coverage is not None else None)
         self.floor = np.asarray(settings.floor_nm, float)
+        # Commanded slower than this a joint is held (rad/s): the speed over which the model's friction takes the
+        # motion's direction (its smoothed sign's width), or a tenth of stick_speed.
+        eps = float(getattr(model.physics.params, "sign_eps", 0.0) or 0.0) if model.physics is not None else 0.0
+        self._held_speed = eps if eps > 0 else 0.1 * max(settings.stick_speed, 1e-3)
         self._beyond = _beyond_coverage(model.coverage, n)
         self.margin = settings.wire_margin if over_wire else 1.0
         # Over a wire a single repeated or skipped read can swing the residual for one period.
@@ -170,6 +182,9 @@ class CollisionDetector:
             maxlen=max(1, self.settings.command_window_periods))
         self._cmd_payload: collections.deque[np.ndarray] = collections.deque(
             maxlen=max(1, self.settings.command_window_periods))
+        self._cmd_speed: collections.deque[np.ndarray] = collections.deque(  # |commanded joint speeds| [rad/s]
+            maxlen=max(1, self.settings.command_window_periods))
+        self._cmd_v = np.zeros(self.n)  # the latest commanded joint speeds [rad/s]
         self._meas_inertial: collections.deque[np.ndarray] = collections.deque(
             [np.zeros(self.n)], maxlen=max(1, self.settings.command_window_periods))
         # Over a wire: the residual's error from the time between samples not being one period, and the
@@ -228,7 +243,21 @@ class CollisionDetector:
             # A joint zeroed at rest held its friction somewhere in its band; one that has moved since may stick
             # anywhere in it again, as far as the other edge (a hard stop leaves it loaded there): twice the band.
             band = self.coverage.static_band * np.where(self._travel > self.MOVED_RAD, 2.0, 1.0)
-            thr += band * np.maximum(0.0, 1.0 - np.abs(dq) / s.stick_speed)
+            held = np.maximum(0.0, 1.0 - np.abs(dq) / s.stick_speed)
+            if self._cmd_speed:
+                # A joint its command holds (still over the window: slower than the speed at which the model's
+                # friction takes its direction) is held by its servo however the other joints' accelerations drag
+                # it: it creeps (under stick_speed), its friction still anywhere in its band.  Only the command says
+                # so: a joint an impact stops while its command moves on, however slowly, gains nothing; nor does a
+                # held joint an impact jolts into sliding (from twice stick_speed on).
+                by_cmd = (np.maximum(0.0, 1.0 - np.max(np.asarray(self._cmd_speed), axis=0) / self._held_speed)
+                          * np.clip(2.0 - np.abs(dq) / s.stick_speed, 0.0, 1.0))
+                held = np.maximum(held, by_cmd)
+                # The model's friction follows the sign of the creep speed (a full Coulomb level from a few mrad/s
+                # on), which a held joint's friction need not follow: its error there is the band plus what the
+                # model predicts beyond its friction at the commanded speed (none for a joint sliding as commanded).
+                thr += np.abs(self._creep_friction(q, dq, self._cmd_v)) * by_cmd
+            thr += band * held
         if s.inertia_uncertainty > 0:
             if self._cmd_inertial:
                 inertial = np.max(np.asarray(self._cmd_inertial), axis=0)
@@ -242,6 +271,12 @@ class CollisionDetector:
             if self._cmd_payload:
                 thr += s.payload_uncertainty_kg * np.max(np.asarray(self._cmd_payload), axis=0)
         return thr
+
+    def _creep_friction(self, q: np.ndarray, dq: np.ndarray, v_ref: np.ndarray) -> np.ndarray:
+        """The model's joint losses at speed `dq` beyond those at `v_ref` (N·m, both at rest acceleration)."""
+        p2 = self.observer.p2
+        zero = np.zeros(self.n)
+        return np.asarray(p2.losses(q, dq, zero) - p2.losses(q, np.asarray(v_ref, float), zero))
 
     def update(self, state: ArmState) -> np.ndarray:
         """One period: the residual (N·m), its thresholds and the fast tool force; returns the residual."""
@@ -304,6 +339,9 @@ class CollisionDetector:
         if self.settings.command_window_periods == 0:
             return
         self._cmds.append(np.array(q_cmd, float))
+        if len(self._cmds) >= 2:
+            self._cmd_v = (self._cmds[-1] - self._cmds[-2]) / self.dt
+            self._cmd_speed.append(np.abs(self._cmd_v))
         if len(self._cmds) == 3:
             a = (self._cmds[2] - 2.0 * self._cmds[1] + self._cmds[0]) / self.dt**2
             # Each entry of M may be off by its share: the bound is sum_k |M_jk| |a_k|, not |(M a)_j|
