@@ -256,7 +256,8 @@ class CollisionDetector:
                 # The model's friction follows the sign of the creep speed (a full Coulomb level from a few mrad/s
                 # on), which a held joint's friction need not follow: its error there is the band plus what the
                 # model predicts beyond its friction at the commanded speed (none for a joint sliding as commanded).
-                thr += np.abs(self._creep_friction(q, dq, self._cmd_v)) * by_cmd
+                if by_cmd.any():  # (two loss evaluations: only when some joint is held)
+                    thr += np.abs(self._creep_friction(q, dq, self._cmd_v)) * by_cmd
             thr += band * held
         if s.inertia_uncertainty > 0:
             if self._cmd_inertial:
