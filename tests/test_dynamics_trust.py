@@ -358,13 +358,19 @@ def test_observers_on_one_step_evaluate_the_model_once_per_sample(robot_module, 
     step = ModelStep(h1, DT)
     lead = KalmanObserver(h1, DT, np.full(6, 0.04), np.full(6, 1e-3), step=step)
     follower = MomentumObserver(h1, DT, 50.0, step=step)
+    own_load = MomentumObserver(h1, DT, 50.0, step=step, own_load=True)
     alone = KalmanObserver(h1, DT, np.full(6, 0.04), np.full(6, 1e-3))
     follower_alone = MomentumObserver(h1, DT, 50.0)
+    differs = 0.0
     for state in states:
         np.testing.assert_array_equal(lead.update(state), alone.update(state))  # the lead computes as alone
         shared, own = follower.update(state), follower_alone.update(state)
         # The follower's load input is the lead's estimate, not its own: close, not equal.
         np.testing.assert_allclose(shared, own, atol=0.5)
+        differs = max(differs, float(np.max(np.abs(shared - own))))
+        # A follower with its own load input computes what it did alone, on the shared derivatives and window.
+        np.testing.assert_array_equal(own_load.update(state), own)
+    assert differs > 0  # the push loads the gears: the load input matters
     assert step.evaluations == len(states)
     assert lead.step is follower.step is step and step.lead is lead
     # The lead not updated on a sample: the follower evaluates it itself.

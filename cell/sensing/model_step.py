@@ -10,6 +10,7 @@ sample alone and is needed by some observers only (losses, trust weights, M, C, 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import weakref
@@ -141,9 +142,14 @@ class ContactPredictor(FastPredictor):
         """(rigid-body torque, learned torque) for one sample; the hybrid's torque is their sum plus
         the losses when the model's physics part is `full`."""
         assert self.p2 is not None
-        x = self._x
-        x[:self._nw] = self.window.push(q, dq, ddq)
+        self._x[:self._nw] = self.window.push(q, dq, ddq)
         rigid = self.shared.rigid(q, dq, ddq)
+        return rigid, self.learned_at(q, dq, ddq, rigid, external)
+
+    def learned_at(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, rigid: np.ndarray,
+                   external: np.ndarray) -> np.ndarray:
+        """The learned torque of the sample `parts_contact` last took, with another load input."""
+        x = self._x
         if self._has_extra:
             x[self._nw:] = self._derived(q, dq, rigid + external)
         learned = np.zeros_like(rigid)
@@ -155,7 +161,7 @@ class ContactPredictor(FastPredictor):
                 learned *= w
             if self.want_variance:
                 self.variance = trust.sigma(dq[None, :], w[None, :])[0] ** 2
-        return rigid, learned
+        return learned
 
 
 @dataclass(frozen=True)
@@ -175,11 +181,13 @@ class ModelStep:
 
     The learned part's load input is rigid + an external-torque estimate (the gears carry the contact
     too): the lead observer's latest one (`publish`).  The lead is the first observer made on the step:
-    in a cell, the virtual sensor's main observer; its touch channel and the collision detector follow
-    it.  The lead evaluates the model on every update; a follower reads the sample the lead evaluated on
-    the same state, and evaluates it itself only when the lead has not (it then advances the shared
-    derivative filters, as the lead would have).  An observer alone on its step computes exactly what
-    it did before steps were shared.
+    in a cell, the virtual sensor's main observer; the collision detector follows it.  A follower that
+    joins with `own_load` (the touch channel: a touch's friction is read from its own fast estimate, not
+    the slow one's) shares the sample's derivatives, window and rigid body but gets the learned part at
+    its own load: one more forest evaluation.  The lead evaluates the model on every update; a follower
+    reads what the lead evaluated on the same state, and evaluates the sample itself only when the lead
+    has not (it then advances the shared derivative filters, as the lead would have).  An observer alone
+    on its step computes exactly what it did before steps were shared.
     """
 
     def __init__(self, model: LearnedModel, dt: float, filter_cfg: FilterConfig | None = None) -> None:
@@ -191,14 +199,20 @@ class ModelStep:
         self.n = self.fast.n
         self.lead: object | None = None
         self.load = np.zeros(self.n)
+        # Followers with a load input of their own: their latest estimate, and their sample at the last state.
+        self._own_load: dict[int, np.ndarray] = {}
+        self._own_sample: dict[int, FreeMotion] = {}
         self._state: ArmState | None = None
         self._sample: FreeMotion | None = None
-        self.evaluations = 0  # model evaluations made (one per sample when shared)
+        self.evaluations = 0  # samples evaluated (one per period when shared)
 
-    def join(self, observer: object) -> None:
-        """`observer` reads this step; the first to join leads it."""
+    def join(self, observer: object, own_load: bool = False) -> None:
+        """`observer` reads this step; the first to join leads it, a follower with `own_load` keeps its own
+        load input."""
         if self.lead is None:
             self.lead = observer
+        elif own_load:
+            self._own_load[id(observer)] = np.zeros(self.n)
 
     def want_variance(self) -> None:
         """Some observer weighs the model's own uncertainty: every sample computes it."""
@@ -208,6 +222,8 @@ class ModelStep:
         """The observer's latest external-torque estimate: the next sample's load input when it leads."""
         if observer is self.lead:
             self.load = estimate
+        elif id(observer) in self._own_load:
+            self._own_load[id(observer)] = estimate
 
     def reset(self, observer: object) -> None:
         """A new stream, when the lead says so (a follower's reset leaves the lead's filters alone)."""
@@ -216,15 +232,27 @@ class ModelStep:
             self.load = np.zeros(self.n)
             self._state = None
             self._sample = None
+            self._own_sample = {}
+        if id(observer) in self._own_load:
+            self._own_load[id(observer)] = np.zeros(self.n)
 
     def at(self, state: ArmState, observer: object) -> FreeMotion:
         """The model at `state`: evaluated now for the lead, or the lead's evaluation on the same state."""
-        if observer is not self.lead and state is self._state and self._sample is not None:
-            return self._sample
-        q = np.asarray(state.q, float)
-        v, a = self.fast.derivs.step(q, state.dq)
-        rigid, learned = self.fast.parts_contact(q, v, a, self.load)
-        sample = FreeMotion(q=q, v=v, a=a, rigid=rigid, learned=learned, variance=self.fast.variance.copy())
-        self._state, self._sample = state, sample
-        self.evaluations += 1
-        return sample
+        if observer is self.lead or state is not self._state or self._sample is None:
+            q = np.asarray(state.q, float)
+            v, a = self.fast.derivs.step(q, state.dq)
+            rigid, learned = self.fast.parts_contact(q, v, a, self.load)
+            self._sample = FreeMotion(q=q, v=v, a=a, rigid=rigid, learned=learned,
+                                      variance=self.fast.variance.copy())
+            self._state = state
+            self._own_sample = {}
+            self.evaluations += 1
+        sample = self._sample
+        key = id(observer)
+        if key not in self._own_load:
+            return sample
+        own = self._own_sample.get(key)
+        if own is None:
+            learned = self.fast.learned_at(sample.q, sample.v, sample.a, sample.rigid, self._own_load[key])
+            own = self._own_sample[key] = dataclasses.replace(sample, learned=learned)
+        return own

@@ -224,7 +224,7 @@ class MomentumObserver:
 
     def __init__(self, model: LearnedModel, dt: float, gain: float | np.ndarray, rebias_samples: int = 25,
                  filter_cfg: FilterConfig | None = None, trapezoid: bool = False, exact_steps: bool = False,
-                 step: ModelStep | None = None) -> None:
+                 step: ModelStep | None = None, own_load: bool = False) -> None:
         self.trapezoid = trapezoid  # integrate the torques by the trapezoidal rule (rectangle: False)
         # A log's own clock (the controller's time stamps) is the true step, however irregular: integrate
         # over it unclipped.  Off, a step is clipped to [0.25, 4] periods (a host's read times jitter).
@@ -232,7 +232,7 @@ class MomentumObserver:
         if model.physics is None:
             raise ValueError("the momentum observer needs a model with a physics part (H1)")
         self.step = step if step is not None else ModelStep(model, dt, filter_cfg)
-        self.step.join(self)
+        self.step.join(self, own_load)  # own_load: its own estimate as the learned part's load input
         self.p2 = model.physics
         self.n = n = model.forest.n
         self.dt = dt
@@ -299,13 +299,14 @@ class MomentumObserver:
 
 def make_observer(kind: str, model: LearnedModel, dt: float, measurement_var: np.ndarray,
                   process_noise_nm: np.ndarray, momentum_gain: float, rebias_window_s: float,
-                  gate: float = 3.0, model_noise: bool = False, step: ModelStep | None = None) -> TorqueObserver:
+                  gate: float = 3.0, model_noise: bool = False, step: ModelStep | None = None,
+                  own_load: bool = False) -> TorqueObserver:
     """The configured observer (`virtual_sensor.observer`; `model_noise`: measurement_noise "model"), on the
-    shared model `step` when given."""
+    shared model `step` when given (`own_load`: a momentum observer following it with its own load input)."""
     samples = max(1, int(round(rebias_window_s / dt)))
     if kind == "kalman":
         return KalmanObserver(model, dt, measurement_var, np.asarray(process_noise_nm, float) ** 2, samples,
                               gate=gate, model_noise=model_noise, step=step)
     if kind == "momentum":
-        return MomentumObserver(model, dt, momentum_gain, samples, step=step)
+        return MomentumObserver(model, dt, momentum_gain, samples, step=step, own_load=own_load)
     raise ValueError(f"unknown observer {kind!r} (kalman or momentum)")

@@ -265,7 +265,8 @@ def build_virtual_source(cfg: VirtualSensorConfig, robot: RobotModel, tool: str,
 def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: LearnedModel, cal: Calibration,
                 observer: str, mapping: str, where: str = "calibration") -> VirtualForceSource:
     # One model evaluation per period for the observer, its touch channel and (app/sensing.py with_guard) the
-    # collision detector: the main observer leads it.
+    # collision detector: the main observer leads it; the touch channel reads a touch's friction from its own
+    # fast estimate (with the slow one's, 1 of 50 peg trials tilted the peg past its limit).
     step = ModelStep(model, dt)
     obs = make_observer(observer, model, dt, np.asarray(cal.measurement_var), np.asarray(cfg.process_noise_nm),
                         cfg.momentum_gain, cfg.rebias_window_s, cfg.innovation_gate,
@@ -283,7 +284,8 @@ def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: L
     else:
         raise DataError(f"unknown wrench mapping {mapping!r} (jacobian, learned or contact)")
     touch = (make_observer("momentum", model, dt, np.asarray(cal.measurement_var), np.asarray(cfg.process_noise_nm),
-                           cfg.touch_gain, cfg.rebias_window_s, step=step) if cfg.touch_gain > 0 else None)
+                           cfg.touch_gain, cfg.rebias_window_s, step=step, own_load=True)
+             if cfg.touch_gain > 0 else None)
     return VirtualForceSource(obs, wmap, zero_at_tare=cfg.zero_at_tare, touch=touch, touch_band_n=cfg.touch_band_n,
                               model_step=step)
 
