@@ -60,8 +60,10 @@ def reference_ok(plan: Callable[[np.ndarray], TimedTrajectory], ref: list[tuple[
         res = run(traj)
         # An interrupted reference run looks like one over the limit: bisecting on would store a low fraction.
         raise_if_interrupted(res["outcome"])
-        peak = float(np.nanmax(res["peak_ratio"]))
-        rows.append({"path": name, "duration_s": traj.duration, "outcome": res["outcome"], "peak_ratio": peak})
+        per_joint = np.asarray(res["peak_ratio"], float)
+        peak = float(np.nanmax(per_joint))
+        rows.append({"path": name, "duration_s": traj.duration, "outcome": res["outcome"], "peak_ratio": peak,
+                     "joint": int(np.nanargmax(per_joint)) if per_joint.size > 1 else None})
         if res["outcome"] != "done" or not peak <= limit_fraction:
             return False, rows
     return True, rows
@@ -69,9 +71,9 @@ def reference_ok(plan: Callable[[np.ndarray], TimedTrajectory], ref: list[tuple[
 
 def bisect_fraction(plan_at: Callable[[float], Callable[[np.ndarray], TimedTrajectory]],
                     ref: list[tuple[str, np.ndarray]], run: Run, limit_fraction: float, steps: int, lo: float,
-                    hi: float, what: str) -> tuple[float, list[dict[str, Any]]]:
+                    hi: float, what: str, lo_known_ok: bool = False) -> tuple[float, list[dict[str, Any]]]:
     """The largest fraction in (0, hi] (to `steps` log-bisections) whose plans `plan_at(f)` keep every reference run
-    within the limit; `lo` is halved until it does."""
+    within the limit; `lo` is halved until it does (or taken as within it: `lo_known_ok`)."""
     checks: list[dict[str, Any]] = []
     bar = tqdm(total=steps + 2, desc=f"{what} calibration", unit="check")  # hi, lo, then the bisections
 
@@ -87,7 +89,7 @@ def bisect_fraction(plan_at: Callable[[float], Callable[[np.ndarray], TimedTraje
     if ok(hi):
         bar.close()
         return hi, checks
-    while not ok(lo):
+    while not lo_known_ok and not ok(lo):
         hi, lo = lo, lo / 2
         if lo < 1e-3:
             raise PlanningError(f"{what} calibration: even a fraction of 0.001 exceeds a limit")
@@ -111,15 +113,34 @@ def calibrate(make: Callable[[np.ndarray], KinematicPlanner], robot: RobotModel,
 
 
 def calibrate_trust(planner: Planner, ref: list[tuple[str, np.ndarray]], run: Run, limit_fraction: float,
-                    steps: int = 5, lo: float = 0.7, hi: float = 1.0) -> dict[str, Any]:
+                    steps: int = 5, lo: float = 0.7, hi: float = 1.0, joint_steps: int = 4) -> dict[str, Any]:
     """The torque-aware planners' one setting per arm, found the same way on the same paths: the share of the
-    planning limit (`torque_scale`, all joints) the model may use so that the plant's torques stay within the
-    limit.  A model fitted on gentler motions under-predicts the torques of the fastest ones."""
+    planning limit (`torque_scale`) the model may use so that the plant's torques stay within the limit.  A
+    model fitted on gentler motions under-predicts the torques of the fastest ones, and not on every joint
+    alike: first one share for all joints is bisected (`fraction`); then the joints whose measured torque
+    ended a failing check keep it, and one share for the others is bisected between it and `hi` with those
+    held (`per_joint`: what the planners use).  A joint that never limited a reference run is not held back
+    by another joint's error."""
     n = planner.plan(ref[0][1]).q.shape[1]
     best, checks = bisect_fraction(lambda f: lambda w: planner.plan(w, np.full(n, f)), ref, run, limit_fraction,
                                    steps, lo, hi, "model trust")
-    return {"fraction": best, "limit_fraction": limit_fraction, "reference_paths": [n for n, _ in ref],
-            "checks": checks, "executions": sum(len(c["runs"]) for c in checks)}
+    binding = sorted({c["runs"][-1]["joint"] for c in checks if not c["ok"] and c["runs"][-1].get("joint") is not None})
+    per_joint = np.full(n, best)
+    joint_checks: list[dict[str, Any]] = []
+    if binding and best < hi and joint_steps > 0:
+        held = np.isin(np.arange(n), binding)
+
+        def scale(f: float) -> np.ndarray:
+            return np.where(held, best, f)
+
+        others, joint_checks = bisect_fraction(lambda f: lambda w: planner.plan(w, scale(f)), ref, run,
+                                               limit_fraction, joint_steps, best, hi, "model trust (other joints)",
+                                               lo_known_ok=True)
+        per_joint = scale(max(others, best))
+    return {"fraction": best, "per_joint": per_joint.round(4).tolist(), "binding_joints": [j + 1 for j in binding],
+            "limit_fraction": limit_fraction, "reference_paths": [n for n, _ in ref], "checks": checks,
+            "joint_checks": joint_checks,
+            "executions": sum(len(c["runs"]) for c in checks + joint_checks)}
 
 
 def load_or_calibrate(path: Path, key: dict[str, Any], calibrate_now: Callable[[], dict[str, Any]]) -> dict[str, Any]:

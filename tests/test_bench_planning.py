@@ -18,7 +18,7 @@ from bench.planning import (
     torque_move,
     trust_reference_set,
 )
-from bench.planning_calibration import calibrate
+from bench.planning_calibration import calibrate, calibrate_trust
 from cell.planning.baselines import KinematicPlanner
 from cell.planning.config import PlannerConfig
 from cell.planning.planner import ToppraPlanner
@@ -115,7 +115,9 @@ def test_the_trusts_extra_reference_drives_joint_2_to_its_speed_cap_while_joint_
     """The move the model under-predicts most on the plant is what the model trust is calibrated on first; the
     kinematic baseline keeps the shared reference set."""
     monkeypatch.setattr(bench_planning, "reference_set", lambda s: [("shared", PATH)])
-    assert [n for n, _ in trust_reference_set(None)] == ["reference_j2_fast", "shared"]  # type: ignore[arg-type]
+    monkeypatch.setattr(bench_planning, "torque_references", lambda s: [("reference_torque_00", PATH)])
+    names = [n for n, _ in trust_reference_set(None)]  # type: ignore[arg-type]
+    assert names == ["reference_j2_fast", "reference_torque_00", "shared"]
     cfg = PlannerConfig(velocity_fraction=0.75, acceleration_limits=[150.0] * 6, torque_margin=0.15)
     def rigid(q, dq, ddq):
         return np.array([robot.rnea(a, b, c) for a, b, c in zip(q, dq, ddq, strict=True)])
@@ -153,6 +155,33 @@ def test_the_calibration_finds_the_largest_acceleration_fraction_within_the_limi
     assert np.allclose(out["acceleration_limits"], np.array(out["shape"]) * out["fraction"], rtol=1e-2)
 
 
+def test_the_trust_holds_the_joint_that_exceeded_and_lets_the_others_use_more(robot):
+    """A stand-in plant that under-predicts joint 2 by 20 % and joint 1 by 5 %: the shared share stops where
+    joint 2 reaches the limit; joint 2 keeps it and the others rise as far as joint 1's error allows."""
+    cfg = PlannerConfig(velocity_fraction=0.75, acceleration_limits=[150.0] * 6, torque_margin=0.15)
+
+    def rigid(q, dq, ddq):
+        return np.array([robot.rnea(a, b, c) for a, b, c in zip(q, dq, ddq, strict=True)])
+
+    planner = ToppraPlanner(robot, rigid, cfg)
+    error = np.array([1.05, 1.2, 1.0, 1.0, 1.0, 1.0])
+
+    def run(traj):
+        peak = np.max(np.abs(rigid(traj.q, traj.dq, traj.ddq)), axis=0) * error / robot.limits.effort
+        return {"outcome": "done", "peak_ratio": peak}
+
+    ref = [("p", np.radians([[0, -30, 90, 0, 90, 0], [30, 10, 60, -30, 90, 30]]))]
+    out = calibrate_trust(planner, ref, run, limit_fraction=0.85, steps=6, joint_steps=6)
+    assert out["binding_joints"] == [2]
+    per_joint = np.array(out["per_joint"])
+    assert per_joint[1] == pytest.approx(out["fraction"], abs=1e-4) and out["fraction"] < 1.0
+    assert np.all(np.delete(per_joint, 1) > out["fraction"])
+    assert len(set(np.delete(per_joint, 1).round(4))) == 1  # one share for the joints not held
+    for c in out["checks"] + out["joint_checks"]:  # every kept setting ran within the limit
+        assert not c["ok"] or all(r["peak_ratio"] <= 0.85 for r in c["runs"])
+    assert out["executions"] == len(out["checks"]) + len(out["joint_checks"])
+
+
 @pytest.mark.parametrize("argv, message", [
     (["bench", "planning", "--paths", "0"], "--paths"),
     (["bench", "planning", "--paths", "x"], "--paths"),
@@ -179,7 +208,8 @@ def test_a_small_bench_runs_every_planner_on_the_plant_and_reports_its_keys(monk
     replaced by fixed settings (tested above; on the plant they take a minute or two)."""
     monkeypatch.setattr("bench.planning.kinematic_limits", lambda s: {
         "acceleration_limits": [4.0, 4.0, 6.0, 10.0, 10.0, 10.0], "fraction": 0.3, "executions": 0, "loaded": True})
-    monkeypatch.setattr("bench.planning.model_trust", lambda s: {"fraction": 0.8, "executions": 0, "loaded": True})
+    monkeypatch.setattr("bench.planning.model_trust", lambda s: {
+        "fraction": 0.8, "per_joint": [0.8] * 6, "executions": 0, "loaded": True})
     code = main(["-q", "bench", "planning", "--paths", "2", "--ppo-updates", "2", "--model", "nominal",
                  "--seed", "1", "--json"])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

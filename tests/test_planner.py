@@ -205,3 +205,33 @@ def test_the_exact_step_delivers_toppras_profile_plus_the_smoothing_window_only(
     assert np.all(np.abs(exact.dq) <= planner.vlim * 1.002)
     smoothed = planner.timed_smoothed(path, grid, sd)
     assert exact.duration < smoothed.duration
+
+
+def test_a_shorter_window_where_the_arm_leaves_rest_saves_half_the_difference_and_keeps_every_bound():
+    """The exact step's average: equal windows are the plain moving average (from its last sample at rest); a
+    shorter start window ends the motion (w_end - w_start) / 2 samples sooner, leaves and reaches rest, and no
+    speed or acceleration grows."""
+    from cell.planning.averaging import rest_to_rest_average
+
+    dt, n = 0.008, 120
+    t = np.arange(n) * dt
+    T = t[-1]
+    s = 0.5 - 0.5 * np.cos(np.pi * t / T)
+    q = np.column_stack([s * k for k in (1.0, -2.0, 0.5)])
+    dq = np.column_stack([0.5 * np.pi / T * np.sin(np.pi * t / T) * k for k in (1.0, -2.0, 0.5)])
+    ddq = np.column_stack([0.5 * (np.pi / T) ** 2 * np.cos(np.pi * t / T) * k for k in (1.0, -2.0, 0.5)])
+    end = q[-1].copy()
+    w = 5
+    plain = np.convolve(np.concatenate([np.zeros(w), s, np.ones(w)]), np.ones(w) / w, mode="valid")
+    same = rest_to_rest_average(q, dq, ddq, s, end, dt, w * dt, w * dt)
+    # the plain average without its first sample (the padding alone): one sample at rest, then moving
+    assert np.allclose(same[3][:-1], plain[1: len(same[3])])
+    assert same[3][0] == 0.0 and same[3][1] > 0.0
+    short = rest_to_rest_average(q, dq, ddq, s, end, dt, 1 * dt, w * dt)
+    assert len(short[0]) == len(same[0]) - 2
+    for q_avg, dq_avg, ddq_avg, s_avg in (same, short):
+        assert np.allclose(q_avg[0], q[0]) and np.allclose(q_avg[-1], end) and s_avg[-1] == 1.0
+        assert np.allclose(dq_avg[[0, -1]], 0.0, atol=1e-3)
+        assert np.all(np.abs(dq_avg) <= np.max(np.abs(dq), axis=0) + 1e-12)
+        assert np.all(np.abs(ddq_avg) <= np.max(np.abs(ddq), axis=0) + 1e-12)
+        assert np.all(np.diff(s_avg) >= -1e-12)

@@ -16,7 +16,12 @@ class PlannerConfig:
     torque_margin: float = 0.10  # plan to (1 - margin) x the effort limit
     velocity_fraction: float = 1.0  # of the URDF speed limits
     acceleration_limits: list[float] = field(default_factory=lambda: [40.0, 40.0, 40.0, 60.0, 60.0, 60.0])
-    gridpoints: int = 200
+    gridpoints: int = 200  # the kinematic baseline's toppra grid (its calibration and figures were made on it)
+    # Ours' toppra grid.  Each grid segment has one path acceleration and its torque bound holds at both ends,
+    # and the exact step slows the samples where a speed cap dips below the profile between grid points: a
+    # coarse grid costs time on both counts (measured per grid size: docs/notes/planning-history.md).  Planning
+    # time grows with it (under a second a path at 800).
+    toppra_gridpoints: int = 800
     max_iterations: int = 10
     sample_period_s: float = 0.008
     baseline_blend: float = 0.25  # share of the baseline's duration spent accelerating (and braking)
@@ -32,10 +37,12 @@ class PlannerConfig:
     # within 20 ms, and first runs overshot a motor there (why: docs/planning.md, "Start transients").
     torque_discretization: str = "interpolation"
     # The plant's torque overshoots the model's as the arm leaves rest (servo lag, friction breaking away,
-    # the controller's cubic interpolation of the set-points): the highest first-run peaks were all 64-88 ms
+    # the controller's cubic interpolation of the set-points): the highest first-run peaks are 6-11 periods
     # into the motion.  The rigid-body bound is lowered by this share over the first `start_margin_s` of the
-    # motion (back to the full bound over the next half window); it costs 0-16 ms a path (docs/planning.md).
-    start_margin: float = 0.15
+    # motion (back to the full bound over the next half window).  With the shorter start window of the exact
+    # step (`exact_smoothing_start_s`) a deeper margin holds those peaks for less time than a longer window
+    # would (docs/planning.md).
+    start_margin: float = 0.20
     start_margin_s: float = 0.10
     # What turns toppra's profile into set-points for ours: "exact" samples the profile as toppra made it
     # (the speed caps already hold between grid points, so nothing is stretched) and averages it over
@@ -48,6 +55,10 @@ class PlannerConfig:
     # and reaches rest.  16 ms let joint 4 overshoot the model by 50 % as it stopped (0.97-0.99 of its motor
     # limit on the plant); 40 ms kept that path at 0.64-0.73 at full model trust.
     exact_smoothing_s: float = 0.04
+    # The same bound where the arm leaves rest (the window gives way to `exact_smoothing_s` over the first
+    # 0.2 s).  Half the difference comes off every plan; the start peaks it raises are held by `start_margin`
+    # (docs/planning.md).  Equal windows: one plain average.
+    exact_smoothing_start_s: float = 0.024
     # The full model's torque beyond toppra's terms (viscous friction, the learned residual) is taken where
     # it occurs ("local": subtracted from the bound at each grid point, from the previous plan) rather than
     # by lowering a joint's bound along the whole path by its worst excess ("global").
@@ -61,6 +72,7 @@ class PlannerConfig:
         require(len(self.acceleration_limits) == 6, f"{where}.acceleration_limits", "must have 6 values")
         require(all(a > 0 for a in self.acceleration_limits), f"{where}.acceleration_limits", "must be > 0")
         require(20 <= self.gridpoints <= 2000, f"{where}.gridpoints", "must lie in [20, 2000]")
+        require(20 <= self.toppra_gridpoints <= 4000, f"{where}.toppra_gridpoints", "must lie in [20, 4000]")
         require(0 < self.baseline_blend <= 0.5, f"{where}.baseline_blend", "must lie in (0, 0.5]")
         require(0 <= self.smoothing_s <= 0.5, f"{where}.smoothing_s", "must lie in [0, 0.5] s")
         require(self.torque_discretization in DISCRETIZATIONS, f"{where}.torque_discretization",
@@ -69,5 +81,7 @@ class PlannerConfig:
         require(0 <= self.start_margin_s <= 1.0, f"{where}.start_margin_s", "must lie in [0, 1] s")
         require(self.retiming in RETIMINGS, f"{where}.retiming", f"must be one of {', '.join(RETIMINGS)}")
         require(0 <= self.exact_smoothing_s <= 0.2, f"{where}.exact_smoothing_s", "must lie in [0, 0.2] s")
+        require(0 <= self.exact_smoothing_start_s <= self.exact_smoothing_s, f"{where}.exact_smoothing_start_s",
+                "must lie in [0, exact_smoothing_s]")
         require(self.residual in RESIDUALS, f"{where}.residual", f"must be one of {', '.join(RESIDUALS)}")
         require(0 <= self.tcp_speed_limit <= 5.0, f"{where}.tcp_speed_limit", "must lie in [0, 5] m/s (0: none)")

@@ -33,6 +33,7 @@ import toppra.constraint as ta_con
 
 from cell.collision.geometry import CollisionChecker
 from cell.model.robot import RobotModel
+from cell.planning.averaging import rest_to_rest_average
 from cell.planning.config import PlannerConfig
 from cell.planning.constraints import GradedTorqueConstraint, SpeedCapConstraint, ToppraTerms
 from drivers.errors import CellError
@@ -200,7 +201,7 @@ class ToppraPlanner(PlannerBase):
         path = self.check_waypoints(waypoints)
         n = self.robot.n
         scale = np.ones(n) if torque_scale is None else np.array(torque_scale, float)
-        grid = np.linspace(0, 1, self.cfg.gridpoints + 1)
+        grid = np.linspace(0, 1, self.cfg.toppra_gridpoints + 1)
         cap = self.speed_cap(path, grid)
         bound = scale.copy()  # the toppra constraint's share of the limit, lowered while the full model exceeds
         offset: np.ndarray | None = None  # the full model's torque beyond toppra's terms, per grid point
@@ -351,10 +352,11 @@ class ToppraPlanner(PlannerBase):
         """Sample toppra's profile every period as it is (s, its speed and acceleration from the profile's own
         constant-acceleration segments, not from differences).  Where a speed cap dips below the profile
         between grid points, time is dilated there alone, by the excess.  Then the joint trajectory (not s)
-        is averaged over `exact_smoothing_s`: every joint's speed and acceleration are averages of the
-        planned ones, so neither grows past its bound (averaging s instead mixes the large path accelerations
-        near the path's ends, where dp/ds -> 0, into points where they are not small); the path is left by
-        well under a milliradian.  A uniform stretch is the last resort, logged."""
+        is averaged over `exact_smoothing_start_s` as it leaves rest and `exact_smoothing_s` as it reaches
+        rest (`rest_to_rest_average`): every joint's speed and acceleration are averages of the planned ones,
+        so neither grows past its bound (averaging s instead mixes the large path accelerations near the
+        path's ends, where dp/ds -> 0, into points where they are not small); the path is left by well under
+        a milliradian.  A uniform stretch is the last resort, logged."""
         dt = self.cfg.sample_period_s
         ts, t_end, i, tau, seg_a = sample_profile(grid, sd, dt)
         moving = ts < t_end
@@ -389,23 +391,9 @@ class ToppraPlanner(PlannerBase):
         q, dp, ddp = path.eval(s)
         dq = dp * s_d[:, None]
         ddq = ddp * s_d[:, None] ** 2 + dp * s_dd[:, None]
-        w = int(round(self.cfg.exact_smoothing_s / dt))
-        if w >= 2:
-            kernel = np.ones(w) / w
-
-            def average(x: np.ndarray, start: np.ndarray | float, end: np.ndarray | float) -> np.ndarray:
-                padded = np.concatenate([np.broadcast_to(start, (w,) + x.shape[1:]), x,
-                                         np.broadcast_to(end, (w,) + x.shape[1:])])
-                if x.ndim == 1:
-                    return np.convolve(padded, kernel, mode="valid")
-                return np.column_stack([np.convolve(padded[:, j], kernel, mode="valid") for j in range(x.shape[1])])
-
-            s_avg = average(s, 0.0, 1.0)
-            end = int(np.nonzero(s_avg >= 1.0 - 1e-12)[0][0]) + 1
-            q = average(q, q[0], q[-1])[:end]
-            dq, ddq = average(dq, 0.0, 0.0)[:end], average(ddq, 0.0, 0.0)[:end]
-            s = s_avg[:end]
-            q[-1], dq[-1], ddq[-1], s[-1] = path.waypoints[-1], 0.0, 0.0, 1.0
+        if self.cfg.exact_smoothing_s > 0:
+            q, dq, ddq, s = rest_to_rest_average(q, dq, ddq, s, path.waypoints[-1], dt,
+                                                 self.cfg.exact_smoothing_start_s, self.cfg.exact_smoothing_s)
         traj = self.sample(self.name, np.arange(len(s)) * dt, q, dq, ddq)
         traj.s = s
         return traj
@@ -420,7 +408,9 @@ class ToppraPlanner(PlannerBase):
         if w >= 2:
             # A moving average of s(t) (held at its ends): velocity and acceleration of the result are
             # averages of the original's, so no bound is exceeded, and the jerk is bounded.
-            s = np.convolve(np.concatenate([np.zeros(w), s, np.ones(w)]), np.ones(w) / w, mode="valid")
+            # (The first output averages the padding alone; the second holds the first input sample, s = 0 as
+            # well: dropping the first keeps one sample at rest, not two.)
+            s = np.convolve(np.concatenate([np.zeros(w), s, np.ones(w)]), np.ones(w) / w, mode="valid")[1:]
             s = s[: np.nonzero(s >= 1.0 - 1e-12)[0][0] + 1] if np.any(s >= 1.0 - 1e-12) else s
         s[-1] = 1.0
         # toppra holds the speed limits at its grid points only, and the averaging above mixes in the

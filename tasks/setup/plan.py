@@ -176,8 +176,12 @@ def plan_and_validate(
         loaded = predicted > 0.3 * planning_limit
         if not ok:
             factor = np.where(peak >= 0.99 * effort, factor * 1.5, factor)  # a clamped reading: it needed more
-        # The model may use the whole planning limit only where it has been shown not to under-predict.
-        wanted = np.where(loaded, np.minimum(1.0, 0.98 / np.maximum(factor, 1e-6)), scale if ok else 1.0)
+        # The model may use the whole planning limit only where it has been shown not to under-predict.  A joint
+        # too lightly loaded to measure its factor keeps its scale, unless the plant needed less than half its
+        # planning limit there: then it may rise by a step (a joint cut hard after a stop, say as the arm left
+        # rest, would otherwise stay below the "loaded" threshold and hold every later plan back).
+        idle = np.where(peak < 0.5 * planning_limit, scale + max_step, scale) if ok else np.ones(robot.n)
+        wanted = np.where(loaded, np.minimum(1.0, 0.98 / np.maximum(factor, 1e-6)), np.minimum(idle, 1.0))
         # The error grows with the accelerations, so a factor measured on a slower run is optimistic for
         # a faster one: speed up by at most `max_step` per round and never past half-way to a scale that
         # has already exceeded a limit (bisection between the known-good and the known-bad scale).
