@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from cell.model.dynamics.fastpredict import FastPredictor
+from cell.model.dynamics.fastpredict import FastPredictor, FlatForest
 from cell.model.dynamics.learned import LearnedModel
 from cell.sensing.derivatives import FilterConfig
 from drivers.interfaces import ArmState
@@ -136,6 +136,13 @@ class ContactPredictor(FastPredictor):
         self.want_variance = False
         self.variance = np.full(self.n, np.nan)
         self.shared = sample_cache(model)
+        # Another load input changes the load columns alone: only the trees that split on them walk again.
+        cols = self._derived.load_columns() if self._has_extra else None
+        self._load_cols = (slice(self._nw + cols.start, self._nw + cols.stop) if cols is not None else None)
+        self._load_trees = (self.forest.subset(np.arange(self._load_cols.start, self._load_cols.stop))
+                            if self._load_cols is not None and isinstance(self.forest, FlatForest) else None)
+        self._row = np.empty_like(self._x)  # the last `learned_at` row
+        self._leaves = np.zeros(0)  # every tree's leaf in that row
 
     def parts_contact(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray,
                       external: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -154,6 +161,27 @@ class ContactPredictor(FastPredictor):
             x[self._nw:] = self._derived(q, dq, rigid + external)
         learned = np.zeros_like(rigid)
         learned[self.outputs] = self.forest.predict(x)
+        if self._load_trees is not None:
+            assert isinstance(self.forest, FlatForest)
+            self._row[:] = x
+            self._leaves = self.forest.leaves()
+        return self._trust(q, dq, ddq, learned)
+
+    def learned_again(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, rigid: np.ndarray,
+                      external: np.ndarray) -> np.ndarray:
+        """`learned_at` the same sample as the last call, at another load input: the same values, bit for bit,
+        for the trees that read the load alone."""
+        if self._load_trees is None or self._load_cols is None:
+            return self.learned_at(q, dq, ddq, rigid, external)
+        assert isinstance(self.forest, FlatForest)
+        row = self._row.copy()
+        row[self._load_cols] = self._derived.load_values(dq, rigid + external)
+        learned = np.zeros_like(rigid)
+        learned[self.outputs] = self.forest.predict_changed(row, self._load_trees, self._leaves)
+        return self._trust(q, dq, ddq, learned)
+
+    def _trust(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, learned: np.ndarray) -> np.ndarray:
+        """The learned part weighed by the trust where the model blends, and the model's variance when wanted."""
         trust = self.model.coverage
         if trust is not None and (trust.gates or self.want_variance):
             w = self.shared.weight(q, dq, ddq) if trust.gates else np.ones(self.n)
@@ -253,6 +281,6 @@ class ModelStep:
             return sample
         own = self._own_sample.get(key)
         if own is None:
-            learned = self.fast.learned_at(sample.q, sample.v, sample.a, sample.rigid, self._own_load[key])
+            learned = self.fast.learned_again(sample.q, sample.v, sample.a, sample.rigid, self._own_load[key])
             own = self._own_sample[key] = dataclasses.replace(sample, learned=learned)
         return own

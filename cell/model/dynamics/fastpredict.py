@@ -44,6 +44,32 @@ def _depth(t: _Tree, node: int = 0) -> int:
     return 1 + max(_depth(t, t.left[node]), _depth(t, t.right[node]))
 
 
+def _walk_arrays(T: int, D: int) -> tuple[np.ndarray, np.ndarray]:
+    """(child, root) of T complete trees of depth D laid out one after another: `child[p]` is the flat position
+    of p's left child, in the internal arrays for all levels but the last, in the leaf array for the last."""
+    n_int, n_leaf = 2**D - 1, 2**D
+    heap = np.arange(n_int)
+    child_local = 2 * heap + 1
+    last = child_local >= n_int
+    child = np.where(last, child_local - n_int, child_local)
+    base_int = (np.arange(T) * n_int)[:, None]
+    base_leaf = (np.arange(T) * n_leaf)[:, None]
+    return (np.where(last[None, :], base_leaf + child[None, :], base_int + child[None, :]).reshape(-1),
+            (np.arange(T) * n_int).astype(np.int64))
+
+
+@dataclass
+class _Subset:
+    """Some trees of a `FlatForest` (their indices) with arrays of their own for a walk."""
+
+    trees: np.ndarray
+    feat: np.ndarray
+    thr: np.ndarray
+    child: np.ndarray
+    root: np.ndarray
+    leaf: np.ndarray
+
+
 class FlatForest:
     """All trees of several single-output boosters as flat arrays; `predict(x)` for one feature row.
 
@@ -92,14 +118,7 @@ class FlatForest:
         self.feat = feat.reshape(-1)
         self.thr = thr.reshape(-1)
         self.leaf = leaf.reshape(-1)
-        heap = np.arange(n_int)
-        child_local = 2 * heap + 1
-        last = child_local >= n_int
-        child = np.where(last, child_local - n_int, child_local)
-        base_int = (np.arange(T) * n_int)[:, None]
-        base_leaf = (np.arange(T) * n_leaf)[:, None]
-        self.child = np.where(last[None, :], base_leaf + child[None, :], base_int + child[None, :]).reshape(-1)
-        self.root = (np.arange(T) * n_int).astype(np.int64)
+        self.child, self.root = _walk_arrays(T, D)
         owner_arr = np.asarray(owner, np.int64)
         order = np.argsort(owner_arr, kind="stable")
         if not np.array_equal(order, np.arange(T)):
@@ -118,6 +137,35 @@ class FlatForest:
         # Shallow forests: evaluate every split of every tree at once (two calls), then only look
         # the decisions up level by level; deep ones: gather the splits on the path level by level.
         self.all_splits = D <= 4
+
+    def subset(self, columns: np.ndarray | Sequence[int]) -> _Subset:
+        """The trees that split on any of `columns`, for `predict_changed`."""
+        T, n_int, n_leaf = self.n_trees, 2**self.depth - 1, 2**self.depth
+        feat, thr = self.feat.reshape(T, n_int), self.thr.reshape(T, n_int)
+        trees = np.flatnonzero((np.isin(feat, np.asarray(columns)) & np.isfinite(thr)).any(axis=1))
+        child, root = _walk_arrays(len(trees), self.depth)
+        return _Subset(trees, feat[trees].reshape(-1), thr[trees].reshape(-1), child, root,
+                       self.leaf.reshape(T, n_leaf)[trees].reshape(-1))
+
+    def leaves(self) -> np.ndarray:
+        """Every tree's leaf value in the last `predict` (a copy)."""
+        return self._v.copy()
+
+    def predict_changed(self, x: np.ndarray, sub: _Subset, base_leaves: np.ndarray) -> np.ndarray:
+        """`predict(x)` for a row that differs from the one `base_leaves` (`leaves()`) came from in the subset's
+        columns alone: only the trees that split on them walk again, and the sums are the same, bit for bit
+        (every tree's leaf in one array, summed as `predict` sums them)."""
+        if not self.all_splits or not self.n_trees:
+            return self.predict(x)
+        go = x[sub.feat] >= sub.thr
+        p = sub.root
+        for _ in range(self.depth):
+            p = sub.child[p] + go[p]
+        v = base_leaves.copy()
+        v[sub.trees] = sub.leaf[p]
+        out = np.add.reduceat(v, self.segments)
+        out[self._empty] = 0.0
+        return out + self.base_score
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         """One row (float32 features) -> (outputs,) predictions."""

@@ -125,6 +125,14 @@ class DerivedOne:
         self.out = np.empty(len(derived_layout(spec, n)))
         self._c = np.zeros(n + 1)
 
+    def load_columns(self) -> slice | None:
+        """Where the load input's columns sit in the output (None: it has none)."""
+        return slice(0, self.m) if self.physics else None
+
+    def load_values(self, dq: np.ndarray, load: np.ndarray) -> np.ndarray:
+        """Those columns' values, as `__call__` computes them."""
+        return np.abs(load[:self.m]) * np.tanh(dq[:self.m] * self.inv_eps)
+
     def __call__(self, q: np.ndarray, dq: np.ndarray, load: np.ndarray | None) -> np.ndarray:
         m, out = self.m, self.out
         s = np.tanh(dq[:m] * self.inv_eps)
