@@ -220,8 +220,10 @@ class CollisionDetector:
         return np.asarray(np.abs(J[:3]).T @ np.abs(acc))
 
     def thresholds(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
+        # (Array methods rather than numpy's dispatching functions, |q'| once: this runs every control period.)
         s = self.settings
         thr = self.floor.copy()
+        speed = np.abs(dq)
         if self.coverage is not None and self._levels is not None:
             # Where the training data was sparse the hybrid's level does not hold: the physics part's does.
             w = self.coverage.weight_one(q, dq, ddq, min_count=s.coverage_min_count, stick=False)
@@ -229,7 +231,7 @@ class CollisionDetector:
             if s.rest_sigma_factor is not None and s.stick_speed > 0:
                 # At rest the model's level is mostly the stuck friction's spread, which the zeroing at rest
                 # removed and the static band term bounds: counted once there, not sigma_factor times.
-                moving = np.minimum(1.0, np.abs(dq) / s.stick_speed)
+                moving = np.minimum(1.0, speed / s.stick_speed)
                 factor = s.rest_sigma_factor + (s.sigma_factor - s.rest_sigma_factor) * moving
             thr += factor * self._levels.sigma(dq[None, :], w[None, :])[0]
         if self._beyond is not None:
@@ -238,20 +240,20 @@ class CollisionDetector:
             # Any joint beyond its reach takes every joint out of the model's experience (the coupling and
             # velocity-product torques of a fast joint load the others), so the largest excess counts.
             v_max, edge = self._beyond
-            thr += s.sigma_factor * edge * max(0.0, float(np.max(np.abs(dq) / v_max)) - 1.0)
+            thr += s.sigma_factor * edge * max(0.0, float((speed / v_max).max()) - 1.0)
         if s.stick_speed > 0 and self.coverage is not None:
             # A joint zeroed at rest held its friction somewhere in its band; one that has moved since may stick
             # anywhere in it again, as far as the other edge (a hard stop leaves it loaded there): twice the band.
             band = self.coverage.static_band * np.where(self._travel > self.MOVED_RAD, 2.0, 1.0)
-            held = np.maximum(0.0, 1.0 - np.abs(dq) / s.stick_speed)
+            held = np.maximum(0.0, 1.0 - speed / s.stick_speed)
             if self._cmd_speed:
                 # A joint its command holds (still over the window: slower than the speed at which the model's
                 # friction takes its direction) is held by its servo however the other joints' accelerations drag
                 # it: it creeps (under stick_speed), its friction still anywhere in its band.  Only the command says
                 # so: a joint an impact stops while its command moves on, however slowly, gains nothing; nor does a
                 # held joint an impact jolts into sliding (from twice stick_speed on).
-                by_cmd = (np.maximum(0.0, 1.0 - np.max(np.asarray(self._cmd_speed), axis=0) / self._held_speed)
-                          * np.clip(2.0 - np.abs(dq) / s.stick_speed, 0.0, 1.0))
+                by_cmd = (np.maximum(0.0, 1.0 - np.asarray(self._cmd_speed).max(axis=0) / self._held_speed)
+                          * np.minimum(np.maximum(2.0 - speed / s.stick_speed, 0.0), 1.0))
                 held = np.maximum(held, by_cmd)
                 # The model's friction follows the sign of the creep speed (a full Coulomb level from a few mrad/s
                 # on), which a held joint's friction need not follow: its error there is the band plus what the
@@ -261,16 +263,16 @@ class CollisionDetector:
             thr += band * held
         if s.inertia_uncertainty > 0:
             if self._cmd_inertial:
-                inertial = np.max(np.asarray(self._cmd_inertial), axis=0)
+                inertial = np.asarray(self._cmd_inertial).max(axis=0)
             else:  # no command stream (a detector fed states only): the measured motion's, held over the
                 # same window (the estimate swings through zero while a hard stop rings)
-                inertial = np.max(np.asarray(self._meas_inertial), axis=0)
+                inertial = np.asarray(self._meas_inertial).max(axis=0)
             thr += s.inertia_uncertainty * inertial
         if s.payload_uncertainty_kg > 0:
             g = self._payload_gravity(q)
             thr += s.payload_uncertainty_kg * np.abs(g - self._g_zero if self._zeroed else g)
             if self._cmd_payload:
-                thr += s.payload_uncertainty_kg * np.max(np.asarray(self._cmd_payload), axis=0)
+                thr += s.payload_uncertainty_kg * np.asarray(self._cmd_payload).max(axis=0)
         return thr
 
     def _creep_friction(self, q: np.ndarray, dq: np.ndarray, v_ref: np.ndarray) -> np.ndarray:

@@ -123,7 +123,7 @@ class Coverage:
     def sigma(self, dq: np.ndarray, w: np.ndarray) -> np.ndarray:
         """(N, n) one-sigma torque uncertainty [N m] for speeds `dq` and trust `w` (see the module docstring)."""
         dq = np.atleast_2d(dq)
-        b = np.clip(np.searchsorted(SPEED_EDGES, np.abs(dq), side="right") - 1, 0, len(SPEED_EDGES) - 2)
+        b = np.minimum(np.maximum(np.searchsorted(SPEED_EDGES, np.abs(dq), side="right") - 1, 0), len(SPEED_EDGES) - 2)
         cols = np.arange(dq.shape[1])[None, :]
         sh = self.sigma_hybrid[cols, b]
         if self.blend:
