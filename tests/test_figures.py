@@ -10,7 +10,7 @@ import pytest
 from app.commands_bench import BENCHES
 from app.commands_cell import run_tags
 from bench.figures import BENCH_DIR, Figure, measure, read_summary, render, save_summary, summary_name
-from bench.figures_table import FIGURES
+from bench.figures_table import COLLISION, FIGURES
 from drivers.errors import DataError
 from main import build_parser, main
 
@@ -48,7 +48,7 @@ def test_the_page_holds_measured_values_and_names_the_missing_ones(tmp_path, cap
     assert "0.108 (seed 1), no `virtual_vs_sensor_my_mae_nm` in the file (seed 3)" in my
     assert "| 0.5 (seed 1) |" in row_of(page, "peg-in-hole, F/T sensor: success rate")
     missing = row_of(page, "collision: false alarms (per 10 min of free motion)")
-    assert "not measured (run: `main.py bench collision --seed 11 --json`)" in missing
+    assert f"not measured (run: `{COLLISION} --json`)" in missing
     assert summary["out"] == str(out) and summary["figures"] == len(FIGURES)
     assert "collision: false alarms (per 10 min of free motion)" in summary["not_measured"]
     assert summary["measured"] == len(FIGURES) - len(summary["not_measured"])
