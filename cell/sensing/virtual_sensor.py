@@ -266,7 +266,7 @@ def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: L
                 observer: str, mapping: str, where: str = "calibration") -> VirtualForceSource:
     # One model evaluation per period for the observer, its touch channel and (app/sensing.py with_guard) the
     # collision detector: the main observer leads it; the touch channel reads a touch's friction from its own
-    # fast estimate (with the slow one's, 1 of 50 peg trials tilted the peg past its limit).
+    # fast estimate (the slow one lags the very touch the channel is there to catch).
     step = ModelStep(model, dt)
     obs = make_observer(observer, model, dt, np.asarray(cal.measurement_var), np.asarray(cfg.process_noise_nm),
                         cfg.momentum_gain, cfg.rebias_window_s, cfg.innovation_gate,
