@@ -37,7 +37,7 @@ threadpool_limits(limits=int(os.environ["OPENBLAS_NUM_THREADS"]), user_api="blas
 
 # The drivers' fixtures (emulator, connected device), shared by each driver's test modules; the artefacts
 # built once per run and shared by the tests (and the xdist workers) that need them.
-pytest_plugins = ["tests.tm5_fixtures", "tests.wacoh_fixtures", "tests.prepared_fixtures"]
+pytest_plugins = ["tests.tm5_fixtures", "tests.wacoh_fixtures", "tests.prepared_fixtures", "tests.collision_fixtures"]
 
 # What drives a simulated cell: its factories (the sim cell, the emulated cell in a child process, the app's
 # openers), named in code rather than in a string, and the CLI commands that open one (in-process

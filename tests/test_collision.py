@@ -15,21 +15,10 @@ from cell.config import CONFIG_DIR, VirtualSensorConfig
 from cell.control.loop import Command, ControlLoop, Observation
 from cell.control.safety import SafetyMonitor
 from cell.data.recorder import Recorder, read_log
-from cell.sensing.virtual_sensor import load_observer_model
 from drivers.configio import load_dataclass
 from drivers.errors import ConfigError, SafetyStopError
 from drivers.interfaces import ArmState
-from tests.vsfixtures import artefacts
-
-
-@pytest.fixture(scope="module")
-def vs():
-    return artefacts()
-
-
-@pytest.fixture(scope="module")
-def model(vs):
-    return load_observer_model(vs["cfg"].virtual_sensor.path("model", "wipe"), vs["robot"])
+from tests.collision_fixtures import posture
 
 
 def _guard(vs, model, reaction: str = "stop", contact_states: list[str] | None = None, limit: float = 150.0,
@@ -80,21 +69,13 @@ class PushTask:
         return {"outcome": "failed" if self.aborted else "done", "reason": self.aborted}
 
 
-def _posture(robot, home, xyz):
-    from cell.control.trajectory import tool_down_pose
-
-    q, ok = robot.ik(tool_down_pose(np.asarray(xyz, float)), home)
-    assert ok
-    return q
-
-
 def _run(vs, model, guard, speed=0.05, push_at=None, force=(0.0, 0.0, 0.0), cycles=150, record=None,
          state="move", on_row=None):
     from sim.cell import make_sim_cell
 
     cfg, robot = vs["cfg"], vs["robot"]
     holder = make_sim_cell(cfg, robot.limits, scene_kind="free", tool="wipe")
-    q0 = _posture(robot, np.asarray(cfg.robot.home, float), [0.45, -0.15, 0.25])
+    q0 = posture(robot, np.asarray(cfg.robot.home, float), [0.45, -0.15, 0.25])
     holder.plant.reset(q0)
     cell = holder.open()
     try:
@@ -119,7 +100,7 @@ def test_thresholds_widen_with_speed_sticking_coverage_and_payload(vs, model):
     guard = _guard(vs, model)
     d = guard.detector
     robot = vs["robot"]
-    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    q = posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
     moving = np.full(6, 0.5)
     base = d.thresholds(q, moving, np.zeros(6))
     no_stick = _guard(vs, model, stick_speed=0.0).detector
@@ -149,7 +130,7 @@ def test_a_joint_that_moved_since_the_zeroing_gets_twice_its_friction_band_at_re
 
     d = _guard(vs, model, payload_uncertainty_kg=0.0).detector
     robot, dt = vs["robot"], vs["cfg"].loop.period_s
-    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    q = posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
     rest = np.zeros(6)
     tau = np.asarray(robot.rnea(q, rest, rest), float)
     d.update(ArmState(t=0.0, q=q, dq=rest, tau=tau, status=ArmStatus(), seq=1))
@@ -169,7 +150,7 @@ def test_a_joint_that_moved_since_the_zeroing_gets_twice_its_friction_band_at_re
 def test_a_joint_its_command_holds_keeps_its_band_and_the_models_creep_friction_while_dragged(vs, model):
     d = _guard(vs, model, payload_uncertainty_kg=0.0).detector
     robot, dt = vs["robot"], vs["cfg"].loop.period_s
-    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    q = posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
     no_stick = _guard(vs, model, payload_uncertainty_kg=0.0, stick_speed=0.0).detector
     band = model.coverage.static_band
     stick = d.settings.stick_speed
@@ -200,7 +181,7 @@ def test_a_joint_its_command_holds_keeps_its_band_and_the_models_creep_friction_
 def test_beyond_the_trained_speeds_the_thresholds_grow_with_speed(vs, model):
     d = _guard(vs, model).detector
     robot = vs["robot"]
-    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    q = posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
     v_max, edge = d._beyond
     assert np.all(np.isfinite(v_max)) and np.all(edge > 0)
     plain = _guard(vs, model).detector
@@ -220,7 +201,7 @@ def test_commanded_acceleration_widens_the_inertial_term_and_a_cruise_adds_nothi
     d = _guard(vs, model).detector
     d.settings = dataclasses.replace(d.settings, payload_uncertainty_kg=0.0)  # its inertial part: the next test
     robot, dt = vs["robot"], vs["cfg"].loop.period_s
-    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    q = posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
     moving = np.full(6, 0.5)
     d.update(ArmState(t=0.0, q=q, dq=np.zeros(6), tau=np.zeros(6)))
     base = d.thresholds(q, moving, np.zeros(6))
@@ -445,28 +426,6 @@ def test_bench_collision_free_motion_plays_the_planning_benchs_plans(vs, model, 
     assert out["free_motion_planners"] == planners.sources
 
 
-def test_over_a_wire_repeated_reads_are_skipped_and_thresholds_widen(vs, model):
-    cfg, robot = vs["cfg"], vs["robot"]
-    point = np.asarray(cfg.virtual_sensor.wrench_point, float)
-    local = build_guard(cfg.collision, model, robot, cfg.loop.period_s, "play", 150.0, point)
-    wire = build_guard(cfg.collision, model, robot, cfg.loop.period_s, "play", 150.0, point, over_wire=True)
-    assert local is not None and wire is not None
-    q = _posture(robot, np.asarray(cfg.robot.home, float), [0.45, -0.15, 0.25])
-    tau = robot.gravity(q)
-    for k in range(5):
-        st = ArmState(t=k * cfg.loop.period_s, q=q, dq=np.zeros(6), tau=tau + 0.5 * k)
-        local.detector.update(st)
-        wire.detector.update(st)
-    assert np.allclose(wire.detector.threshold, cfg.collision.detector.wire_margin * local.detector.threshold)
-    assert wire.detector.confirm == 2 and local.detector.confirm == 1
-    # The same sample read again (no new controller cycle) changes nothing; a new one does.
-    before = wire.detector.residual.copy()
-    wire.detector.update(ArmState(t=5 * cfg.loop.period_s, q=q, dq=np.zeros(6), tau=tau + 2.0))
-    assert np.array_equal(wire.detector.residual, before)
-    wire.detector.update(ArmState(t=6 * cfg.loop.period_s, q=q, dq=np.zeros(6), tau=tau + 2.5))
-    assert not np.array_equal(wire.detector.residual, before)
-
-
 # ----------------------------------------------------------------------------------------- guarded motion
 def test_guarded_speed_bound_and_the_tasks_head_on_speeds(vs):
     from app.tasks_registry import build_task
@@ -519,7 +478,7 @@ def test_a_payload_error_widens_the_thresholds_by_its_inertial_load_at_the_comma
 
     d = _guard(vs, model).detector
     robot, dt = vs["robot"], vs["cfg"].loop.period_s
-    q = _posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
+    q = posture(robot, np.asarray(vs["cfg"].robot.home, float), [0.45, -0.15, 0.25])
     moving = np.full(6, 0.5)
     d.update(ArmState(t=0.0, q=q, dq=np.zeros(6), tau=np.zeros(6)))
     base = d.thresholds(q, moving, np.zeros(6))
@@ -540,78 +499,3 @@ def test_a_payload_error_widens_the_thresholds_by_its_inertial_load_at_the_comma
     inertial = d.settings.inertia_uncertainty * (np.abs(d.observer.mass) @ np.abs(a))
     assert np.allclose(widened - base, inertial + payload, rtol=0.05, atol=1e-3)
     assert payload[4] > 0.01
-
-
-# ----------------------------------------------------------------------------------------- over a wire, late
-def _late_wire_wipe(vs, model, push_at: int | None = None, force=(0.0, 0.0, 0.0), state: str = "move",
-                    host_cycles: int = 260, seed: int = 5):
-    """A contact-free wipe-like motion (tool down, back and forth along y) read as a busy host reads a wire.
-
-    The plant runs its own cycle; the host reads every 1 to 6 controller cycles (missed deadlines), time
-    stamps its reads a little late, sometimes reads the same sample twice, and streams one target per
-    read as if no time had been lost: the controller runs out of targets, then catches up (stop-and-go).
-    From host cycle `push_at` a hand pushes the tool with `force` (world frame).  Returns (guard,
-    detections, plant cycles)."""
-    from sim.cell import make_sim_cell
-
-    cfg, robot = vs["cfg"], vs["robot"]
-    dt = cfg.loop.period_s
-    coll = dataclasses.replace(cfg.collision, tasks={"play": TaskContactSafety(contact_states=["wipe"])})
-    guard = build_guard(coll, model, robot, dt, "play", 150.0, np.asarray(cfg.virtual_sensor.wrench_point, float),
-                        over_wire=True)
-    assert guard is not None
-    holder = make_sim_cell(cfg, robot.limits, scene_kind="free", tool="wipe")
-    q0 = _posture(robot, np.asarray(cfg.robot.home, float), [0.45, -0.15, 0.25])
-    holder.plant.reset(q0)
-    cell = holder.open()
-    rng = np.random.default_rng(seed)
-    detections, ticks = [], 0
-    try:
-        cell.arm.arm()
-        for _ in range(25):  # settle, then zero the residual at rest
-            cell.ticker.wait()
-            ticks += 1
-            guard.detector.update(dataclasses.replace(holder.plant.measured_state(), seq=ticks))
-        guard.rebias()
-        pose, q = robot.tcp_pose(q0), q0.copy()
-        y0 = pose.translation[1]
-        for k in range(host_cycles):
-            if push_at is not None and k == push_at:
-                holder.plant.external_wrench = np.concatenate([np.asarray(force, float), np.zeros(3)])
-            st = dataclasses.replace(holder.plant.measured_state(), seq=ticks)
-            st = dataclasses.replace(st, t=st.t + rng.uniform(0.0, 0.3 * dt))  # the read's own latency
-            for _ in range(2 if rng.random() < 0.1 else 1):  # sometimes the same sample twice
-                det = guard.observe(st, k * dt, k, state)
-                if det is not None:
-                    detections.append(det)
-            # The host's path time advances one period per read, however late the read was.
-            s = min(1.0, k * dt / 0.25)
-            pose.translation = np.array([pose.translation[0], y0 + 0.06 * np.sin(2 * np.pi * k * dt / 1.2)
-                                         * 0.5 * (1 - np.cos(np.pi * s)), pose.translation[2]])
-            q, _ = robot.ik(pose, q, iters=20)
-            cell.arm.send_target(q)
-            guard.commanded(q)
-            for _ in range(int(rng.choice([1, 1, 2, 2, 3, 4, 6]))):  # the controller's cycles until the next read
-                cell.ticker.wait()
-                ticks += 1
-    finally:
-        holder.close()
-    return guard, detections, ticks
-
-
-@pytest.mark.parametrize("state", ["move", "wipe"])
-def test_a_late_jittery_wire_is_not_a_collision_and_the_checks_hold_while_late(vs, model, state):
-    guard, detections, ticks = _late_wire_wipe(vs, model, state=state)
-    d = guard.detector
-    assert ticks > 2 * 260 and d.late_samples > 100 and d.repeats > 10  # a busy host: most reads late
-    assert not detections, [det.describe() for det in detections]
-    summary = guard.summary()
-    assert summary["late_samples"] == d.late_samples and summary["repeated_samples"] == d.repeats
-    assert summary["max_fast_force_n"] < 150.0
-
-
-def test_over_a_late_jittery_wire_an_impact_is_still_caught(vs, model):
-    guard, detections, _ = _late_wire_wipe(vs, model, push_at=150, force=(0.0, 0.0, 250.0))
-    assert detections, guard.summary()
-    # Later than on time (the late reads hold the checks, their aliasing widens the thresholds), but caught.
-    assert detections[0].cycle < 150 + 25 and detections[0].mode == "free"
