@@ -434,6 +434,10 @@ def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     b.set_defaults(func=cmd_bench)
 
 
+# What every bench's summary adds about its run: its wall time, the load averages before and after, the cores.
+BENCH_CONTEXT_KEYS = ("bench_wall_s", "load_avg_before", "load_avg_after", "cpu_count")
+
+
 def _machine_load() -> list[float]:
     """The 1, 5 and 15 minute load averages ([] where the platform has none)."""
     try:
@@ -451,10 +455,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     t0, load_before = time.perf_counter(), _machine_load()
     out = chosen.run(args)
     # Every bench says how long it took and what else the cores were doing: a slow run from a slow machine.
-    out.setdefault("bench_wall_s", round(time.perf_counter() - t0, 2))
-    out.setdefault("load_avg_before", load_before)
-    out.setdefault("load_avg_after", _machine_load())
-    out.setdefault("cpu_count", os.cpu_count())
+    context = (round(time.perf_counter() - t0, 2), load_before, _machine_load(), os.cpu_count())
+    for key, value in zip(BENCH_CONTEXT_KEYS, context, strict=True):
+        out.setdefault(key, value)
     emit(out, args.json)
     save_bench_summary(out, args.what, chosen.tags(args), args)
     return 0 if chosen.passed(out) else 1
