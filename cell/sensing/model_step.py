@@ -141,27 +141,27 @@ class ContactPredictor(FastPredictor):
         self._load_cols = (slice(self._nw + cols.start, self._nw + cols.stop) if cols is not None else None)
         self._load_trees = (self.forest.subset(np.arange(self._load_cols.start, self._load_cols.stop))
                             if self._load_cols is not None and isinstance(self.forest, FlatForest) else None)
-        self._row = np.empty_like(self._x)  # the last `learned_at` row
+        self._row = np.empty_like(self._x)  # the row `parts_contact` last kept
         self._leaves = np.zeros(0)  # every tree's leaf in that row
 
-    def parts_contact(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray,
-                      external: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def parts_contact(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, external: np.ndarray,
+                      keep_row: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """(rigid-body torque, learned torque) for one sample; the hybrid's torque is their sum plus
-        the losses when the model's physics part is `full`."""
+        the losses when the model's physics part is `full`.  `keep_row`: keep the feature row and every tree's
+        leaf, for `learned_again` at another load input."""
         assert self.p2 is not None
         self._x[:self._nw] = self.window.push(q, dq, ddq)
         rigid = self.shared.rigid(q, dq, ddq)
-        return rigid, self.learned_at(q, dq, ddq, rigid, external)
+        return rigid, self._learned(q, dq, ddq, rigid, external, keep_row)
 
-    def learned_at(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, rigid: np.ndarray,
-                   external: np.ndarray) -> np.ndarray:
-        """The learned torque of the sample `parts_contact` last took, with another load input."""
+    def _learned(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, rigid: np.ndarray, external: np.ndarray,
+                 keep_row: bool) -> np.ndarray:
         x = self._x
         if self._has_extra:
             x[self._nw:] = self._derived(q, dq, rigid + external)
         learned = np.zeros_like(rigid)
         learned[self.outputs] = self.forest.predict(x)
-        if self._load_trees is not None:
+        if keep_row and self._load_trees is not None:
             assert isinstance(self.forest, FlatForest)
             self._row[:] = x
             self._leaves = self.forest.leaves()
@@ -169,10 +169,10 @@ class ContactPredictor(FastPredictor):
 
     def learned_again(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, rigid: np.ndarray,
                       external: np.ndarray) -> np.ndarray:
-        """`learned_at` the same sample as the last call, at another load input: the same values, bit for bit,
-        for the trees that read the load alone."""
+        """The learned torque of the sample the last `parts_contact(..., keep_row=True)` took, at another load
+        input: only the trees that read the load walk again, and the sums are those of a full walk, bit for bit."""
         if self._load_trees is None or self._load_cols is None:
-            return self.learned_at(q, dq, ddq, rigid, external)
+            return self._learned(q, dq, ddq, rigid, external, keep_row=False)
         assert isinstance(self.forest, FlatForest)
         row = self._row.copy()
         row[self._load_cols] = self._derived.load_values(dq, rigid + external)
@@ -269,7 +269,7 @@ class ModelStep:
         if observer is self.lead or state is not self._state or self._sample is None:
             q = np.asarray(state.q, float)
             v, a = self.fast.derivs.step(q, state.dq)
-            rigid, learned = self.fast.parts_contact(q, v, a, self.load)
+            rigid, learned = self.fast.parts_contact(q, v, a, self.load, keep_row=bool(self._own_load))
             self._sample = FreeMotion(q=q, v=v, a=a, rigid=rigid, learned=learned,
                                       variance=self.fast.variance.copy())
             self._state = state
