@@ -159,11 +159,11 @@ class VirtualForceSource:
 
     def __init__(self, observer: TorqueObserver, mapping: JacobianMap | LearnedMap, label: str = "",
                  zero_at_tare: bool = True, touch: TorqueObserver | None = None, touch_band_n: float = 0.0,
-                 model_step: ModelStep | None = None) -> None:
+                 model_step: ModelStep | None = None, model_dir: Path | None = None) -> None:
         self.observer = observer
         # The model evaluation its observers share, for a collision detector on the same model to join.
         self.model_step = model_step
-        self.model_dir: Path | None = None  # where its model was loaded from (build_virtual_source)
+        self.model_dir = model_dir  # where its model was loaded from (resolved)
         # The fast channel for touches (VirtualSensorConfig.touch_gain), used while `contact_expected()`
         # (set by whoever knows the task's state: the runner, replay) says a touch may come.
         self.touch = touch
@@ -256,14 +256,13 @@ def build_virtual_source(cfg: VirtualSensorConfig, robot: RobotModel, tool: str,
     model = load_observer_model(model_dir, robot, dt)
     cal = load_calibration(calibration_dir, robot, tool, model_dir, model)
     own = cfg.for_tool(tool)
-    source = source_from(own, robot, dt, model, cal, observer or own.observer, mapping or own.mapping,
-                         str(calibration_dir))
-    source.model_dir = model_dir.resolve()
-    return source
+    return source_from(own, robot, dt, model, cal, observer or own.observer, mapping or own.mapping,
+                       str(calibration_dir), model_dir=model_dir.resolve())
 
 
 def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: LearnedModel, cal: Calibration,
-                observer: str, mapping: str, where: str = "calibration") -> VirtualForceSource:
+                observer: str, mapping: str, where: str = "calibration",
+                model_dir: Path | None = None) -> VirtualForceSource:
     # One model evaluation per period for the observer, its touch channel and (app/sensing.py with_guard) the
     # collision detector: the main observer leads it; the touch channel reads a touch's friction from its own
     # fast estimate (the slow one lags the very touch the channel is there to catch).
@@ -287,7 +286,7 @@ def source_from(cfg: VirtualSensorConfig, robot: RobotModel, dt: float, model: L
                            cfg.touch_gain, cfg.rebias_window_s, step=step, own_load=True)
              if cfg.touch_gain > 0 else None)
     return VirtualForceSource(obs, wmap, zero_at_tare=cfg.zero_at_tare, touch=touch, touch_band_n=cfg.touch_band_n,
-                              model_step=step)
+                              model_step=step, model_dir=model_dir)
 
 
 def contact_map(cfg: VirtualSensorConfig, robot: RobotModel, joint_var: np.ndarray) -> ContactMap:
