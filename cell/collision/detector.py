@@ -233,7 +233,12 @@ class CollisionDetector:
                 # removed and the static band term bounds: counted once there, not sigma_factor times.
                 moving = np.minimum(1.0, speed / s.stick_speed)
                 factor = s.rest_sigma_factor + (s.sigma_factor - s.rest_sigma_factor) * moving
-            thr += factor * self._levels.sigma(dq[None, :], w[None, :])[0]
+            level = self._levels.sigma(dq[None, :], w[None, :])[0]
+            arm = self._levels.sigma_arm_one(dq, w)
+            if arm is not None:
+                # A slow joint of a fast arm errs as the arm's fastest joint makes it (coupling, velocity products).
+                level = np.maximum(level, arm)
+            thr += factor * level
         if self._beyond is not None:
             # Beyond the joint speeds the model was trained at its error is unknown: the physics part's
             # level at the trained edge, grown in proportion to the speed (a viscous-like error).

@@ -245,7 +245,8 @@ class ContactGuard:
 
 
 def build_guard(cfg: CollisionConfig, model: Any, robot: RobotModel, dt: float, task: str, contact_limit_n: float,
-                wrench_point: np.ndarray, over_wire: bool = False, model_step: ModelStep | None = None) -> ContactGuard | None:
+                wrench_point: np.ndarray, over_wire: bool = False,
+                model_step: ModelStep | None = None) -> ContactGuard | None:
     """The guard for `task` on the hybrid `model` (cell/sensing/virtual_sensor.py load_observer_model), or None
     when collision detection is switched off; `model_step`: the model evaluation it shares with the virtual
     sensor's observers (cell/sensing/model_step.py), on the same model."""

@@ -46,6 +46,10 @@ class Coverage:
     # Whether predictions blend toward the physics part by the trust (H1, whose physics part is the
     # whole P2); H2 and H3 keep their learned part (it carries physics of its own) and only report.
     blend: bool = True
+    # The same levels binned by the arm's fastest joint instead of the joint's own speed (None: a model saved
+    # before they existed): a slow joint's error while another one is fast (coupling, velocity products).
+    sigma_hybrid_arm: np.ndarray | None = None
+    sigma_physics_arm: np.ndarray | None = None
 
     @property
     def bins(self) -> int:
@@ -77,6 +81,9 @@ class Coverage:
                        np.asarray(static_band, float), blend)
         cov.sigma_hybrid = _levels(dq[rows], residual_hybrid[rows])
         cov.sigma_physics = _levels(dq[rows], residual_physics[rows])
+        arm = np.repeat(np.abs(dq[rows]).max(axis=1, keepdims=True), dq.shape[1], axis=1)
+        cov.sigma_hybrid_arm = _levels(arm, residual_hybrid[rows])
+        cov.sigma_physics_arm = _levels(arm, residual_physics[rows])
         return cov
 
     # --------------------------------------------------------------------------------------- use
@@ -122,17 +129,43 @@ class Coverage:
 
     def sigma(self, dq: np.ndarray, w: np.ndarray) -> np.ndarray:
         """(N, n) one-sigma torque uncertainty [N m] for speeds `dq` and trust `w` (see the module docstring)."""
+        return self._sigma(np.atleast_2d(dq), w, self.sigma_hybrid, self.sigma_physics)
+
+    def sigma_arm(self, dq: np.ndarray, w: np.ndarray) -> np.ndarray | None:
+        """(N, n) the levels by the arm's fastest joint (`sigma_hybrid_arm`) at speeds `dq`, trust `w`; None
+        for a model without them."""
+        if self.sigma_hybrid_arm is None or self.sigma_physics_arm is None:
+            return None
         dq = np.atleast_2d(dq)
+        fastest = np.repeat(np.abs(dq).max(axis=1, keepdims=True), dq.shape[1], axis=1)
+        return self._sigma(fastest, w, self.sigma_hybrid_arm, self.sigma_physics_arm, dq)
+
+    def sigma_arm_one(self, dq: np.ndarray, w: np.ndarray) -> np.ndarray | None:
+        """`sigma_arm` of one sample (n,), without batch overhead (the detector's path, every control period)."""
+        if self.sigma_hybrid_arm is None or self.sigma_physics_arm is None:
+            return None
+        b = min(max(int(SPEED_EDGES.searchsorted(float(np.abs(dq).max()), side="right")) - 1, 0), len(SPEED_EDGES) - 2)
+        sh = self.sigma_hybrid_arm[:, b]
+        s = np.sqrt(w * sh * sh + (1.0 - w) * self.sigma_physics_arm[:, b] ** 2) if self.blend else sh
+        if self.stick_speed > 0:
+            s = np.where(np.abs(dq) < self.stick_speed, np.maximum(s, self.static_band / np.sqrt(3.0)), s)
+        return s
+
+    def _sigma(self, speed: np.ndarray, w: np.ndarray, hybrid: np.ndarray, physics: np.ndarray,
+               own: np.ndarray | None = None) -> np.ndarray:
+        """The levels of the tables at `speed`'s bins; the sticking floor by each joint's own speed (`own`,
+        default `speed`)."""
+        dq = speed
         b = np.minimum(np.maximum(np.searchsorted(SPEED_EDGES, np.abs(dq), side="right") - 1, 0), len(SPEED_EDGES) - 2)
         cols = np.arange(dq.shape[1])[None, :]
-        sh = self.sigma_hybrid[cols, b]
+        sh = hybrid[cols, b]
         if self.blend:
-            sp = self.sigma_physics[cols, b]
+            sp = physics[cols, b]
             s = np.sqrt(w * sh**2 + (1.0 - w) * sp**2)
         else:  # the prediction keeps its whole learned part: its own level, the trust only reported
             s = sh
         if self.stick_speed > 0:
-            sticking = np.abs(dq) < self.stick_speed
+            sticking = np.abs(dq if own is None else own) < self.stick_speed
             s = np.where(sticking, np.maximum(s, self.static_band / np.sqrt(3.0)), s)
         return s
 
@@ -142,7 +175,10 @@ class Coverage:
                 "counts": self.counts.tolist(), "min_count": self.min_count, "stick_speed": self.stick_speed,
                 "sigma_hybrid": self.sigma_hybrid.tolist(), "sigma_physics": self.sigma_physics.tolist(),
                 "static_band": self.static_band.tolist(), "blend": self.blend,
-                "speed_edges": SPEED_EDGES[1:-1].tolist()}
+                "speed_edges": SPEED_EDGES[1:-1].tolist(),
+                **({"sigma_hybrid_arm": self.sigma_hybrid_arm.tolist(),
+                    "sigma_physics_arm": self.sigma_physics_arm.tolist()}
+                   if self.sigma_hybrid_arm is not None and self.sigma_physics_arm is not None else {})}
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> Coverage:
@@ -154,6 +190,12 @@ class Coverage:
                        bool(d.get("blend", True)))
         if cov.counts.ndim != 4 or cov.counts.shape[0] != len(js) or cov.sigma_hybrid.shape[1] != len(SPEED_EDGES) - 1:
             raise ValueError("coverage arrays have inconsistent shapes")
+        if "sigma_hybrid_arm" in d and "sigma_physics_arm" in d:
+            cov.sigma_hybrid_arm = np.asarray(d["sigma_hybrid_arm"], float)
+            cov.sigma_physics_arm = np.asarray(d["sigma_physics_arm"], float)
+            if (cov.sigma_hybrid_arm.shape != cov.sigma_hybrid.shape
+                    or cov.sigma_physics_arm.shape != cov.sigma_physics.shape):
+                raise ValueError("coverage arrays have inconsistent shapes")
         return cov
 
 
