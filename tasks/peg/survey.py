@@ -68,6 +68,7 @@ class Survey:
         self.free_z = 0.0
         self.next_target = pin.SE3.Identity()
         self.reason = ""
+        self.settle_until = 0.0  # arrived above a touch point: no descent or touch test before this time
 
     def step(self, fz: float, ref: pin.SE3, tip: pin.SE3, guard: GuardedDescent, t: float
              ) -> tuple[pin.SE3, SurveyStep]:
@@ -97,9 +98,12 @@ class Survey:
             if not arrived:
                 return ref, "moving"
             self.segments = []
+            self.settle_until = t + c.survey_settle_s
             return ref, ("surveyed" if self.k >= len(self.poses) else "at_point")
         if self.k >= len(self.poses):  # no survey configured
             return ref, "surveyed"
+        if t < self.settle_until:  # the stop's kick in the force reading decays (PegConfig.survey_settle_s)
+            return ref, "moving"
         # Down onto the face; its height is where Fz first crossed the threshold (before the servo's lag
         # presses the point in).
         touch = guard.touch(fz, c.survey_cycles, ref, tip)
