@@ -61,6 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--cell", choices=CALIBRATION_KINDS, default="sim", help="the cell to collect and calibrate on")
     pr.add_argument("--samples", type=COUNT, default=PREPARE_SAMPLES, help="training samples to collect (8 ms each)")
     pr.add_argument("--force", action="store_true", help="rebuild every artefact even if present and matching")
+    pr.add_argument("--fast-moves", action="store_true",
+                    help="add moves at `plan`'s speeds to the collection (docs/collision.md: what they change)")
     add_plant_option(pr)
     common(pr)
     pr.set_defaults(func=cmd_prepare)
@@ -99,6 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="training excitation: the paper's configuration chain, Fourier, or both mixed")
     co.add_argument("--fourier-share", type=float_in(0, 1, True, True), default=0.7,
                     help="mixed family: share of the training samples that are Fourier excitation (0..1)")
+    co.add_argument("--fast-share", type=float_in(0, 1, False, True), default=0.0,
+                    help="extra share of moves timed as `plan` times them (config/plans.yaml), at its speeds")
     co.add_argument("--plan-seed", type=SEED, default=0, help="seed of the planned trajectories (--seed: the plant's)")
     co.add_argument("--test-trajectories", type=int_in(0), default=6, help="held-out test trajectories")
     co.add_argument("--test-repeats", type=COUNT, default=5, help="runs of each test trajectory")

@@ -10,7 +10,7 @@ from typing import Any
 from app.cells import calibration_cells, cell_identity, cell_kind, open_cell
 from app.common import emit, load_cell_config
 from app.progress import heartbeat
-from app.sensing import PREPARE_SAMPLES, run_prepare
+from app.sensing import PREPARE_SAMPLES, plan_settings, run_prepare
 from app.tasks_registry import robot_for
 from drivers.errors import ConfigError
 
@@ -20,7 +20,7 @@ log = logging.getLogger("tmcell")
 def cmd_prepare(args: argparse.Namespace) -> int:
     cfg = load_cell_config(args)
     with heartbeat(f"prepare --tool {args.tool}"):
-        out = run_prepare(cfg, args.tool, args.cell, args.seed, args.samples, args.force)
+        out = run_prepare(cfg, args.tool, args.cell, args.seed, args.samples, args.force, fast_moves=args.fast_moves)
     emit(out, args.json)
     return 0
 
@@ -68,7 +68,8 @@ def cmd_collect(args: argparse.Namespace) -> int:
     out = collect(cfg, opener, Path(args.out), samples=args.samples, family=args.family,
                   fourier_share=args.fourier_share, test_trajectories=args.test_trajectories,
                   test_repeats=args.test_repeats, test_moves=args.test_moves,
-                  excitation=args.excitation, seed=args.plan_seed, robot=args.robot)
+                  excitation=args.excitation, seed=args.plan_seed, robot=args.robot,
+                  fast_share=args.fast_share, fast_planner=plan_settings() if args.fast_share > 0 else None)
     emit(out, args.json)
     return 0
 

@@ -31,7 +31,11 @@ def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[
         from cell.planning.constraints import toppra_terms
 
         model = load_model(Path(path), robot)
-        return model.predict, f"{model.meta.kind} ({path})", toppra_terms(model)
+        # The name keys the calibrations and the policy stored for it: a model trained again on other data is
+        # another model.
+        trained = (model.meta.training_data_sha256 or "")[:12]
+        name = f"{model.meta.kind} ({path}, data {trained})" if trained else f"{model.meta.kind} ({path})"
+        return model.predict, name, toppra_terms(model)
     log.warning("--model %s: planning with the nominal rigid-body model (P1, no rotor inertia or friction); "
                 "validation on the cell corrects the plan where it is wrong", NOMINAL)
 

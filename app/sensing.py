@@ -10,9 +10,10 @@ import numpy as np
 
 from app.cells import calibration_cells, cell_identity, check_plant, is_simulated
 from app.tasks_registry import robot_for, working_posture
-from cell.config import CellConfig
+from cell.config import CONFIG_DIR, CellConfig
 from cell.control.loop import OpenCell
 from cell.model.robot import RobotModel
+from cell.planning.config import PlannerConfig
 from drivers.errors import ConfigError
 
 log = logging.getLogger("tmcell")
@@ -83,15 +84,25 @@ def with_guard(cfg: CellConfig, tool: str, cell: OpenCell, robot: RobotModel) ->
     return replace(cell, guard=factory)
 
 
-def run_prepare(cfg: CellConfig, tool: str, kind: str, seed: int | None, samples: int, force: bool) -> dict[str, Any]:
-    """Collect, train the causal H1 and calibrate for `tool` on a `kind` cell (each step skipped when done)."""
+def plan_settings() -> PlannerConfig:
+    """The planner settings `plan` times its moves with (config/plans.yaml), its TCP speed stop included."""
+    from tasks.setup.plan import load_plan_file
+
+    return load_plan_file(CONFIG_DIR / "plans.yaml").planner
+
+
+def run_prepare(cfg: CellConfig, tool: str, kind: str, seed: int | None, samples: int, force: bool,
+                fast_moves: bool = False) -> dict[str, Any]:
+    """Collect, train the causal H1 and calibrate for `tool` on a `kind` cell (each step skipped when done);
+    `fast_moves`: the collection adds moves timed as `plan` times them."""
     from tasks.setup.calibrate import prepare
 
     robot = robot_for(cfg, tool)
     check_plant(cfg, kind, seed, tool)
     opener, applier = calibration_cells(cfg, kind, tool, robot, seed)
     return prepare(cfg, tool, robot, opener, opener, applier, samples=samples, force=force,
-                   cell_info=cell_identity(cfg, kind, seed), working_posture=working_posture(cfg, tool, robot))
+                   cell_info=cell_identity(cfg, kind, seed), working_posture=working_posture(cfg, tool, robot),
+                   fast_planner=plan_settings() if fast_moves else None)
 
 
 def ensure_virtual_artefacts(cfg: CellConfig, tool: str, kind: str, robot: RobotModel,

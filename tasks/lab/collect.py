@@ -27,6 +27,7 @@ from cell.control.safety import SafetyMonitor
 from cell.control.signals import raise_if_interrupted
 from cell.data.excitation.chain import paper_chain
 from cell.data.excitation.config import ExcitationConfig, read_excitation_config
+from cell.data.excitation.fast import fast_moves
 from cell.data.excitation.fourier import fourier_excitation
 from cell.data.excitation.motion import Motion, Segment
 from cell.data.excitation.moves import join_motions, random_moves, transfer
@@ -35,6 +36,7 @@ from cell.data.outputs import check_out_dir
 from cell.data.recorder import Recorder, new_run_dir, read_log
 from cell.model.robot import RobotModel
 from cell.model.specs import CELL_ROBOT, robot_by_name
+from cell.planning.config import PlannerConfig
 from drivers.configio import to_plain
 from drivers.errors import ConfigError, DataError
 from tasks.lab.playback import PlaybackTask
@@ -58,6 +60,8 @@ def collect(
     sweep_share: float = 0.0,
     sweep_centre: np.ndarray | None = None,
     robot: str = CELL_ROBOT,
+    fast_share: float = 0.0,
+    fast_planner: PlannerConfig | None = None,
 ) -> dict[str, Any]:
     """Run training and test trajectories on a cell through the control loop (safety, recording) and
     write a dataset: `<out>/train.parquet`, `<out>/test.parquet`, `<out>/dataset.yaml`, `<out>/collect.json`.
@@ -84,7 +88,7 @@ def collect(
     dt = cfg.loop.period_s
     t0 = time.perf_counter()
     train_plan = training_plan(robot_model, cfg, ex, dt, samples, family, fourier_share, slow_share, sweep_share,
-                               sweep_centre)
+                               sweep_centre, fast_share, fast_planner)
     plans: list[tuple[str, Motion]] = [("train", train_plan)]
     if test_trajectories > 0:
         test_plan = random_moves(robot_model, cfg, ex, dt, test_trajectories, test_moves, list(ex.speeds),
@@ -98,6 +102,12 @@ def collect(
         plans[k] = (plans[k][0], Motion(lead + plans[k][1].segments, dt, plans[k][1].info))
     rec_cfg = dataclasses.replace(cfg, recording=dataclasses.replace(
         cfg.recording, directory=str(out_dir / "runs"), chunk_rows=max(cfg.recording.chunk_rows, 5000)))
+    split_cfg = {"train": rec_cfg, "test": rec_cfg}
+    if fast_share > 0 and fast_planner is not None:
+        # The fast moves run at `plan`'s TCP speeds, under its stop; every other part was planned under the
+        # cell's own limit, which still bounds them.
+        split_cfg["train"] = dataclasses.replace(rec_cfg, safety=dataclasses.replace(
+            cfg.safety, max_tcp_speed=max(cfg.safety.max_tcp_speed, fast_planner.tcp_speed_limit)))
     results: dict[str, Any] = {}
     holder = open_cell_fn()
     cell = holder.open()
@@ -106,7 +116,7 @@ def collect(
             if i == 0:
                 lead = transfer(cell.arm.read_state().q, plan.start, robot_model, cfg, ex, dt)
                 plan = Motion(lead + plan.segments, dt, plan.info)
-            res = _play(plan, split, cell, rec_cfg, robot_model)
+            res = _play(plan, split, cell, split_cfg[split], robot_model)
             results[split] = res
             raise_if_interrupted(res["outcome"])
             if res["outcome"] != "done":
@@ -138,15 +148,32 @@ SLOW_SPEED_FRACTION = 0.02  # slow excitation: joint speeds up to 2 % of the lim
 
 def training_plan(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: float, samples: int,
                   family: str, fourier_share: float = 0.7, slow_share: float = 0.0, sweep_share: float = 0.0,
-                  sweep_centre: np.ndarray | None = None) -> Motion:
+                  sweep_centre: np.ndarray | None = None, fast_share: float = 0.0,
+                  fast_planner: PlannerConfig | None = None) -> Motion:
     """The training motion.  `slow_share` > 0 (what `prepare` collects) adds about `slow_share * samples`
     samples of slow, small-amplitude Fourier excitation around random centres to the family's
     `samples`: the joint speeds of careful task motion (0.005-0.05 rad/s), where the friction is in
     its Stribeck regime and the fast families only pass through at their turning points.
     `sweep_share` > 0 adds about `sweep_share * samples` samples of slow constant-speed sweeps around
-    `sweep_centre`, the tool's working posture (`cell.data.excitation.sweep.sweep_excitation`)."""
+    `sweep_centre`, the tool's working posture (`cell.data.excitation.sweep.sweep_excitation`).
+    `fast_share` > 0 adds about `fast_share * samples` samples of moves timed as `plan` times them
+    (`fast_planner`'s limits; `cell.data.excitation.fast.fast_moves`): the cell's working speeds."""
     if not 0 < fourier_share < 1:
         raise ConfigError(f"--fourier-share {fourier_share}: must lie in (0, 1)")
+    if fast_share > 0:
+        if not fast_share < 1:
+            raise ConfigError(f"fast_share {fast_share}: must lie in [0, 1)")
+        if fast_planner is None or fast_planner.tcp_speed_limit <= 0:
+            raise ConfigError("fast_share > 0 needs the planner settings `plan` runs under, with a TCP speed limit")
+        base = training_plan(robot, cfg, ex, dt, samples, family, fourier_share, slow_share, sweep_share,
+                             sweep_centre)
+        try:
+            fast = fast_moves(robot, cfg, ex, dt, int(samples * fast_share), fast_planner,
+                              start=base.segments[-1].q[-1], traj_base=900,
+                              segment_base=max(s.segment for s in base.segments) + 1)
+        except ValueError as exc:
+            raise ConfigError(f"fast moves: {exc}") from None
+        return Motion(base.segments + fast.segments, dt, {**base.info, "fast": fast.info, "fast_share": fast_share})
     if not 0 <= slow_share < 1:
         raise ConfigError(f"slow_share {slow_share}: must lie in [0, 1)")
     if sweep_share > 0:

@@ -46,6 +46,7 @@ from cell.model.dynamics.fastpredict import FastPredictor
 from cell.model.dynamics.learned import LearnedModel
 from cell.model.dynamics.rigid_body import urdf_sha256
 from cell.model.robot import RobotModel
+from cell.planning.config import PlannerConfig
 from cell.sensing.artefacts import calibration_matches
 from cell.sensing.observer import make_observer
 from cell.sensing.virtual_sensor import (
@@ -394,6 +395,7 @@ def calibrate(
 # ========================================================================================= prepare
 PREPARE_SLOW_SHARE = 0.25
 PREPARE_SWEEP_SHARE = 0.4  # of `samples`: slow sweeps around the tool's working posture (when given)
+PREPARE_FAST_SHARE = 0.25  # of `samples`: moves timed as `plan` times them (when its settings are given)
 
 
 def prepare(
@@ -408,11 +410,13 @@ def prepare(
     seed: int = 0,
     cell_info: dict[str, Any] | None = None,
     working_posture: np.ndarray | None = None,
+    fast_planner: PlannerConfig | None = None,
 ) -> dict[str, Any]:
     """Collect (with `tool` mounted) -> train the causal H1 -> calibrate, into the default artefact paths.
 
     `working_posture`: the joints where the tool's task starts; the collection then adds slow sweeps
-    around it (`PREPARE_SWEEP_SHARE` x `samples`).
+    around it (`PREPARE_SWEEP_SHARE` x `samples`).  `fast_planner`: the settings `plan` times its moves
+    with; the collection then adds such moves (`PREPARE_FAST_SHARE` x `samples`).
 
     CLI: main.py prepare [--tool wipe|peg] [--cell sim] [--samples 40000] [--force] [--json]
     """
@@ -422,10 +426,12 @@ def prepare(
     data_dir, model_dir, cal_dir = vs.path("data", tool), vs.path("model", tool), vs.path("calibration", tool)
     manifest = data_dir / "dataset.yaml"
     steps: dict[str, Any] = {}
-    stale = manifest.exists() and working_posture is not None and not _has_sweeps(data_dir)
-    if stale:
-        log.warning("prepare %s: %s was collected without the slow sweeps around the working posture: "
-                    "collecting it again", tool, data_dir)
+    stale = False
+    for part, wanted, what in (("sweep", working_posture is not None, "the slow sweeps around the working posture"),
+                               ("fast", fast_planner is not None, "moves at the cell's working speeds")):
+        if manifest.exists() and wanted and not stale and not _has_part(data_dir, part):
+            log.warning("prepare %s: %s was collected without %s: collecting it again", tool, data_dir, what)
+            stale = True
     period = dataset_period(manifest) if manifest.exists() else None
     if period is not None and abs(period - cfg.loop.period_s) > PERIOD_TOLERANCE * cfg.loop.period_s:
         log.warning("prepare %s: %s was sampled every %.1f ms, this cell runs every %.1f ms: collecting it again",
@@ -434,8 +440,10 @@ def prepare(
     if force or stale or not manifest.exists():
         log.info("prepare %s: collecting %d samples with the %s tool into %s", tool, samples, tool, data_dir)
         sweeps = PREPARE_SWEEP_SHARE if working_posture is not None else 0.0
+        fast = PREPARE_FAST_SHARE if fast_planner is not None else 0.0
         res = collect(cfg, collect_opener, data_dir, samples=samples, test_trajectories=0, seed=seed,
-                      slow_share=PREPARE_SLOW_SHARE, sweep_share=sweeps, sweep_centre=working_posture)
+                      slow_share=PREPARE_SLOW_SHARE, sweep_share=sweeps, sweep_centre=working_posture,
+                      fast_share=fast, fast_planner=fast_planner)
         steps["collect"] = {"done": True, "train_samples": res["train_samples"], "wall_s": round(res["wall_s"], 1)}
     else:
         steps["collect"] = {"done": False, "reason": f"{manifest} exists"}
@@ -477,10 +485,10 @@ def dataset_period(manifest: Path) -> float | None:
         return None
 
 
-def _has_sweeps(data_dir: Path) -> bool:
-    """Whether the dataset's collection included the slow sweeps (its collect.json says so)."""
+def _has_part(data_dir: Path, part: str) -> bool:
+    """Whether the dataset's collection included a training part (`sweep`, `fast`: its collect.json says so)."""
     try:
         info = json.loads((data_dir / "collect.json").read_text())["plans"]["train"]
     except (OSError, ValueError, KeyError, TypeError):
         return False
-    return isinstance(info, dict) and "sweep" in info
+    return isinstance(info, dict) and part in info
