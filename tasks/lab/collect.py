@@ -165,29 +165,21 @@ def training_plan(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: 
             raise ConfigError(f"fast_share {fast_share}: must lie in [0, 1)")
         if fast_planner is None or fast_planner.tcp_speed_limit <= 0:
             raise ConfigError("fast_share > 0 needs the planner settings `plan` runs under, with a TCP speed limit")
+        planner = fast_planner  # (a local the lambda below sees as checked)
         base = training_plan(robot, cfg, ex, dt, samples, family, fourier_share, slow_share, sweep_share,
                              sweep_centre)
-        try:
-            fast = fast_moves(robot, cfg, ex, dt, int(samples * fast_share), fast_planner,
-                              start=base.segments[-1].q[-1], traj_base=900,
-                              segment_base=max(s.segment for s in base.segments) + 1)
-        except ValueError as exc:
-            raise ConfigError(f"fast moves: {exc}") from None
-        return Motion(base.segments + fast.segments, dt, {**base.info, "fast": fast.info, "fast_share": fast_share})
+        return _appended(base, "fast", fast_share, "fast moves", lambda start, seg: fast_moves(
+            robot, cfg, ex, dt, int(samples * fast_share), planner, start=start, traj_base=900, segment_base=seg))
     if not 0 <= slow_share < 1:
         raise ConfigError(f"slow_share {slow_share}: must lie in [0, 1)")
     if sweep_share > 0:
         if sweep_centre is None:
             raise ConfigError("sweep_share > 0 needs the working posture to sweep around")
+        centre = sweep_centre  # (a local the lambda below sees as checked)
         base = training_plan(robot, cfg, ex, dt, samples, family, fourier_share, slow_share)
-        try:
-            sweeps = sweep_excitation(robot, cfg, ex, dt, int(samples * sweep_share), sweep_centre,
-                                      start=base.segments[-1].q[-1], traj_base=700,
-                                      segment_base=max(s.segment for s in base.segments) + 1)
-        except ValueError as exc:
-            raise ConfigError(f"slow sweeps around the working posture: {exc}") from None
-        return Motion(base.segments + sweeps.segments, dt, {**base.info, "sweep": sweeps.info,
-                                                          "sweep_share": sweep_share})
+        return _appended(base, "sweep", sweep_share, "slow sweeps around the working posture",
+                         lambda start, seg: sweep_excitation(robot, cfg, ex, dt, int(samples * sweep_share), centre,
+                                                             start=start, traj_base=700, segment_base=seg))
     if slow_share > 0:
         slow_n = int(samples * slow_share)
         fast = training_plan(robot, cfg, ex, dt, samples, family, fourier_share)
@@ -221,6 +213,17 @@ def training_plan(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: 
                             segment_base=max(s.segment for s in four.segments) + 1)
         return join_motions([chain, four], robot, cfg, ex)
     raise ConfigError(f"--family {family}: unknown (paper, fourier, mixed)")
+
+
+def _appended(base: Motion, key: str, share: float, what: str,
+              make: Callable[[np.ndarray, int], Motion]) -> Motion:
+    """`base` followed by the part `make(start, segment_base)` makes from where `base` ends (its segment ids
+    after base's), its info under `key`; a part that cannot be made is a ConfigError naming `what`."""
+    try:
+        part = make(base.segments[-1].q[-1], max(s.segment for s in base.segments) + 1)
+    except ValueError as exc:
+        raise ConfigError(f"{what}: {exc}") from None
+    return Motion(base.segments + part.segments, base.dt, {**base.info, key: part.info, f"{key}_share": share})
 
 
 def _play(plan: Motion, split: str, cell: Any, cfg: CellConfig, robot: RobotModel) -> dict[str, Any]:
