@@ -418,7 +418,7 @@ def prepare(
     around it (`PREPARE_SWEEP_SHARE` x `samples`).  `fast_planner`: the settings `plan` times its moves
     with; the collection then adds such moves (`PREPARE_FAST_SHARE` x `samples`).
 
-    CLI: main.py prepare [--tool wipe|peg] [--cell sim] [--samples 40000] [--force] [--json]
+    CLI: main.py prepare [--tool wipe|peg] [--cell sim] [--samples 40000] [--force] [--fast-moves] [--json]
     """
 
     t0 = time.perf_counter()
