@@ -10,9 +10,8 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, replace
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 from pymodbus.constants import ExcCodes
@@ -31,13 +30,12 @@ from drivers.tm5.registers import (
     USER_AREA_LAST,
     wrap_int32,
 )
+from sim.emulator_loop import EmulatorLoop
 from sim.plant_api import PlantLike
 from sim.tm5_program import LEASE_TIMEOUT_S, RobotProgramState, RobotSideProgram
 from sim.tm_modbus_table import ControllerTable, close_server, start_server
 
 log = logging.getLogger(__name__)
-
-T = TypeVar("T")
 
 _HR_COUNT = USER_AREA_LAST - USER_AREA_FIRST + 1
 _READ_HOLDING = {3, 23}
@@ -84,7 +82,7 @@ class _Phase(enum.Enum):
 # ------------------------------------------------------------------------------------------------
 # The emulator
 # ------------------------------------------------------------------------------------------------
-class TM5Emulator:
+class TM5Emulator(EmulatorLoop):
     """A TM5-700 controller on 127.0.0.1: Modbus/TCP slave (input registers 7001-7036, discrete inputs
     7200-7208, coils 7104/7105, holding 9000-9999) and the robot-side program, driving `plant`.
 
@@ -103,6 +101,7 @@ class TM5Emulator:
             raise ValueError(f"watchdog_cycles must be >= 1, got {watchdog_cycles}")
         if not (lease_timeout_s > 0 and math.isfinite(lease_timeout_s)):
             raise ValueError(f"lease_timeout_s must be positive, got {lease_timeout_s!r}")
+        super().__init__("tm5-emulator", "TM5 emulator")
         self.plant = plant
         self.layout = layout if layout is not None else UserAreaLayout()
         self.layout.validate("layout")
@@ -122,12 +121,7 @@ class TM5Emulator:
         self._history_lock = threading.Lock()
         self._device = self._make_device()
         self._server: ModbusTcpServer | None = None
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._stop_event: asyncio.Event | None = None
         self._relisten: asyncio.Task[None] | None = None
-        self._ready = threading.Event()
-        self._startup_error: BaseException | None = None
         self._phase = _Phase.NEW
         self._cycle_failed = False
         self._publish_controller()  # sensible registers before the first cycle
@@ -144,15 +138,10 @@ class TM5Emulator:
         if self._phase is not _Phase.NEW:
             raise RuntimeError(f"the emulator is {self._phase.value}; create a new one")
         self._phase = _Phase.RUNNING
-        self._thread = threading.Thread(target=self._thread_main, name="tm5-emulator", daemon=True)
-        self._thread.start()
-        if not self._ready.wait(10.0):
-            raise RuntimeError("the emulator thread did not start within 10 s")
-        if self._startup_error is not None:
-            self._thread.join(5.0)
+        error = self._start_loop()
+        if error is not None:
             self._phase = _Phase.STOPPED
-            raise ConfigError(f"TM5 emulator cannot listen on {self.host}:{self._requested_port} "
-                              f"({self._startup_error})") from self._startup_error
+            raise ConfigError(f"TM5 emulator cannot listen on {self.host}:{self._requested_port} ({error})") from error
         log.debug("TM5 emulator serving Modbus/TCP on %s:%d", self.host, self.port)
         return self.port
 
@@ -161,14 +150,7 @@ class TM5Emulator:
         if self._phase is not _Phase.RUNNING:
             return
         self._phase = _Phase.STOPPED
-        loop, ev, thread = self._loop, self._stop_event, self._thread
-        if loop is not None and ev is not None and not loop.is_closed():
-            with contextlib.suppress(RuntimeError):  # the loop may just have finished on its own
-                loop.call_soon_threadsafe(ev.set)
-        if thread is not None:
-            thread.join(10.0)
-            if thread.is_alive():
-                log.error("TM5 emulator thread did not stop within 10 s")
+        self._stop_loop()
 
     def __enter__(self) -> TM5Emulator:
         self.start()
@@ -180,7 +162,7 @@ class TM5Emulator:
     # ----------------------------------------------------------------------------- fault injection
     def drop_link(self, seconds: float) -> None:
         """Close every client connection now and refuse new ones for `seconds` (then listen again)."""
-        self._in_loop(self._drop_link(seconds))
+        self._run_coroutine(self._drop_link(seconds))
 
     def freeze(self, seconds: float | None = None, *, controller: bool = False) -> None:
         """The robot-side program hangs (counter and user area stop updating) for `seconds` (None: until
@@ -215,7 +197,7 @@ class TM5Emulator:
         def restart() -> None:
             self.project_running = True
             self.paused = False
-        self._in_loop_sync(restart)
+        self._call(restart)
 
     # ----------------------------------------------------------------------------- observation
     @property
@@ -237,39 +219,18 @@ class TM5Emulator:
         return self._robot.host_block()
 
     # ----------------------------------------------------------------------------- loop thread
-    def _thread_main(self) -> None:
-        try:
-            asyncio.run(self._main())
-        except BaseException as exc:  # noqa: BLE001 - report startup failures to start(); log the rest
-            if not self._ready.is_set():
-                self._startup_error = exc
-            else:
-                log.exception("TM5 emulator loop crashed")
-        finally:
-            self._ready.set()
+    async def _bind(self) -> None:
+        await self._listen(self._requested_port)
 
-    async def _main(self) -> None:
-        self._loop = asyncio.get_running_loop()
-        self._stop_event = asyncio.Event()
-        try:
-            await self._listen(self._requested_port)
-        except Exception as exc:  # noqa: BLE001 - handed to start()
-            self._startup_error = exc
-            self._ready.set()
-            return
-        cycle = asyncio.create_task(self._run_cycles(), name="tm5-emulator-cycle")
-        self._ready.set()
-        try:
-            await self._stop_event.wait()
-        finally:
-            cycle.cancel()
+    def _serve(self) -> list[asyncio.Task[None]]:
+        return [asyncio.create_task(self._run_cycles(), name="tm5-emulator-cycle")]
+
+    async def _close(self) -> None:
+        if self._relisten is not None:
+            self._relisten.cancel()
             with contextlib.suppress(asyncio.CancelledError):
-                await cycle
-            if self._relisten is not None:
-                self._relisten.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await self._relisten
-            await self._close_server()
+                await self._relisten
+        await self._close_server()
 
     async def _listen(self, port: int) -> None:
         self._server, self._port = await start_server(self._device, self.host, port)
@@ -318,27 +279,10 @@ class TM5Emulator:
                 delay = 0.0
             await asyncio.sleep(max(delay, 0.0))
 
-    def _in_loop(self, coro: Coroutine[Any, Any, T]) -> T:
-        loop = self._loop
-        if self._phase is not _Phase.RUNNING or loop is None:
-            coro.close()
-            raise RuntimeError("the emulator is not running")
-        return asyncio.run_coroutine_threadsafe(coro, loop).result(5.0)
-
-    def _in_loop_sync(self, fn: Callable[[], None]) -> None:
-        """Run `fn` on the loop thread (or directly when not running) and wait for it."""
-        if self._phase is not _Phase.RUNNING or self._loop is None:
-            fn()
-            return
-
-        async def run() -> None:
-            fn()
-        self._in_loop(run())
-
     def _set_faults(self, **changes: Any) -> None:
         def apply() -> None:
             self.faults = replace(self.faults, **changes)
-        self._in_loop_sync(apply)
+        self._call(apply)
 
     # ----------------------------------------------------------------------------- one cycle
     def _cycle(self) -> None:

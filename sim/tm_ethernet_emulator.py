@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import math
 import random
-import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -31,6 +29,7 @@ from drivers.tm5.ethernet_slave import (
     parse_items,
 )
 from drivers.tm5.tm_packet import FrameError, TMFramer, encode_packet
+from sim.emulator_loop import EmulatorLoop
 from sim.plant_api import PlantLike
 from sim.tm_listen_node import ListenNode
 from sim.tm_modbus_table import ControllerTable, close_server, start_server, table_device
@@ -62,7 +61,7 @@ class TMEthernetFaults:
                 raise ConfigError(f"TM Ethernet emulator: {name} must lie in [0, 1], got {p!r}")
 
 
-class TMEthernetEmulator:
+class TMEthernetEmulator(EmulatorLoop):
     """A TM5-700 on 127.0.0.1: Ethernet Slave (`$TMSVR` table every `period_s`), Listen node (`$TMSCT`,
     `$TMSTA`) and the controller's own Modbus table (joint angles, poses, status inputs; read-only; None for
     `modbus_port` serves none), all on port 0 by default, on one asyncio loop in a background thread with the
@@ -88,6 +87,7 @@ class TMEthernetEmulator:
                               f">= 0, got {coalesce}, {split}, {command_latency_cycles}")
         if mode not in _MODES:
             raise ConfigError(f"TM Ethernet emulator: mode must be one of {list(_MODES)}, got {mode!r}")
+        super().__init__("tm-ethernet-emulator", "TM Ethernet emulator")
         self.plant = plant
         self.host = host
         self.period_s = period_s
@@ -111,11 +111,8 @@ class TMEthernetEmulator:
         self._listen_clients: set[asyncio.StreamWriter] = set()
         self._pending: list[bytes] = []
         self._holding = False
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._stop_event: asyncio.Event | None = None
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._startup_error: BaseException | None = None
+        self._servers: list[asyncio.Server] = []
+        self._modbus: ModbusTcpServer | None = None
 
     # ----------------------------------------------------------------------------- lifecycle
     @property
@@ -134,25 +131,16 @@ class TMEthernetEmulator:
 
     def start(self) -> tuple[int, int]:
         """Serve; returns (slave port, listen port).  ConfigError when an address cannot be bound."""
-        if self._thread is not None:
+        if self.started:
             raise RuntimeError("the emulator was started already; create a new one")
-        self._thread = threading.Thread(target=self._thread_main, name="tm-ethernet-emulator", daemon=True)
-        self._thread.start()
-        if not self._ready.wait(10.0):
-            raise RuntimeError("the emulator thread did not start within 10 s")
-        if self._startup_error is not None:
-            self._thread.join(5.0)
+        error = self._start_loop()
+        if error is not None:
             ports = (*self._ports, self._modbus_requested)
-            raise ConfigError(f"TM Ethernet emulator cannot listen on {self.host}:{ports} ({self._startup_error})")
+            raise ConfigError(f"TM Ethernet emulator cannot listen on {self.host}:{ports} ({error})")
         return self._require_bound()
 
     def stop(self) -> None:
-        loop, ev, thread = self._loop, self._stop_event, self._thread
-        if loop is not None and ev is not None and not loop.is_closed():
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(ev.set)
-        if thread is not None:
-            thread.join(10.0)
+        self._stop_loop()
 
     def __enter__(self) -> TMEthernetEmulator:
         self.start()
@@ -205,49 +193,27 @@ class TMEthernetEmulator:
         self._call(self.node.leave)
 
     # ----------------------------------------------------------------------------- loop thread
-    def _thread_main(self) -> None:
-        try:
-            asyncio.run(self._main())
-        except BaseException as exc:  # noqa: BLE001 - startup failures go to start(); the rest is logged
-            if not self._ready.is_set():
-                self._startup_error = exc
-            else:
-                log.exception("TM Ethernet emulator loop crashed")
-        finally:
-            self._ready.set()
-
-    async def _main(self) -> None:
-        self._loop = asyncio.get_running_loop()
-        self._stop_event = asyncio.Event()
-        try:
-            slave = await asyncio.start_server(self._on_slave_client, self.host, self._ports[0])
-            listen = await asyncio.start_server(self._on_listen_client, self.host, self._ports[1])
-            modbus: ModbusTcpServer | None = None
-            if self._modbus_requested is not None:
-                modbus, self._modbus_bound = await start_server(table_device(self._table, self._on_modbus),
-                                                                self.host, self._modbus_requested)
-        except (OSError, RuntimeError) as exc:  # pymodbus says RuntimeError when it cannot bind
-            self._startup_error = exc
-            self._ready.set()
-            return
+    async def _bind(self) -> None:
+        slave = await asyncio.start_server(self._on_slave_client, self.host, self._ports[0])
+        self._servers.append(slave)
+        listen = await asyncio.start_server(self._on_listen_client, self.host, self._ports[1])
+        self._servers.append(listen)
+        if self._modbus_requested is not None:  # pymodbus raises RuntimeError when it cannot bind
+            self._modbus, self._modbus_bound = await start_server(table_device(self._table, self._on_modbus),
+                                                                  self.host, self._modbus_requested)
         self._bound = (slave.sockets[0].getsockname()[1], listen.sockets[0].getsockname()[1])
-        tasks = [asyncio.create_task(self._servo()), asyncio.create_task(self._broadcast())]
-        self._ready.set()
-        try:
-            await self._stop_event.wait()
-        finally:
-            for task in tasks:
-                task.cancel()
-            for server in (slave, listen):
-                server.close()
-            self._close_all()
-            for task in tasks:
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
-            for server in (slave, listen):
-                await server.wait_closed()
-            if modbus is not None:
-                await close_server(modbus)
+
+    def _serve(self) -> list[asyncio.Task[None]]:
+        return [asyncio.create_task(self._servo()), asyncio.create_task(self._broadcast())]
+
+    async def _close(self) -> None:
+        for server in self._servers:
+            server.close()
+        self._close_all()
+        for server in self._servers:
+            await server.wait_closed()
+        if self._modbus is not None:
+            await close_server(self._modbus)
 
     async def _on_slave_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if self._link_down():
@@ -402,23 +368,6 @@ class TMEthernetEmulator:
             for name, value in changes.items():
                 setattr(self.faults, name, value)
         self._call(apply)
-
-    def _call(self, fn: Callable[[], None]) -> None:
-        """Run `fn` on the loop thread and wait (directly when the loop is not running)."""
-        loop = self._loop
-        if loop is None or loop.is_closed() or not loop.is_running():
-            fn()
-            return
-        done = threading.Event()
-
-        def run() -> None:
-            try:
-                fn()
-            finally:
-                done.set()
-        loop.call_soon_threadsafe(run)
-        if not done.wait(5.0):
-            raise RuntimeError("the emulator loop did not answer within 5 s")
 
     def _require_bound(self) -> tuple[int, int]:
         if self._bound is None:
