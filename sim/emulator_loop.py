@@ -4,6 +4,7 @@ bound, stopped from any thread, and how other threads run code on it."""
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import threading
@@ -67,29 +68,28 @@ class EmulatorLoop:
 
     # ----------------------------------------------------------------------------- other threads' calls
     def _call(self, fn: Callable[[], None]) -> None:
-        """Run `fn` on the loop thread and wait (directly when the loop is not running)."""
+        """Run `fn` on the loop thread and wait, its exception raised here (directly when the loop is not
+        running)."""
         loop = self._loop
         if loop is None or loop.is_closed() or not loop.is_running():
             fn()
             return
-        done = threading.Event()
 
-        def run() -> None:
-            try:
-                fn()
-            finally:
-                done.set()
-        loop.call_soon_threadsafe(run)
-        if not done.wait(5.0):
-            raise RuntimeError(f"the {self._what} loop did not answer within 5 s")
+        async def run() -> None:
+            fn()
+        self._run_coroutine(run())
 
     def _run_coroutine(self, coro: Coroutine[Any, Any, T]) -> T:
-        """Run `coro` on the loop and wait for its result (RuntimeError when the loop is not running)."""
+        """Run `coro` on the loop and wait for its result (RuntimeError when the loop is not running or does not
+        answer within 5 s)."""
         loop = self._loop
         if loop is None or loop.is_closed() or not loop.is_running():
             coro.close()
             raise RuntimeError(f"the {self._what} is not running")
-        return asyncio.run_coroutine_threadsafe(coro, loop).result(5.0)
+        try:
+            return asyncio.run_coroutine_threadsafe(coro, loop).result(5.0)
+        except concurrent.futures.TimeoutError:
+            raise RuntimeError(f"the {self._what} loop did not answer within 5 s") from None
 
     # ----------------------------------------------------------------------------- the loop thread
     def _thread_main(self) -> None:

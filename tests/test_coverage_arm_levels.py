@@ -102,18 +102,31 @@ def test_arm_tables_of_another_shape_are_refused(key, shape):
         Coverage.from_dict({**d, key: np.zeros(shape).tolist()})
 
 
-def test_the_one_sample_arm_level_equals_the_batch_one():
-    # The detector's per-period path gives what the batch method gives, blended and with a sticking floor.
+def test_the_arm_level_of_one_sample_and_of_many_is_the_fastest_joints_bin_blended():
+    # One sample (the detector's per-period call) and many give, per sample, the arm tables' column of the bin
+    # the fastest joint falls in, blended by the trust and floored where a joint sticks (its own speed).
+    from cell.model.dynamics.uncertainty import SPEED_EDGES
+
     rng = np.random.default_rng(3)
-    n = 3
-    cov = Coverage(np.arange(n), np.zeros((n, 3)), np.ones((n, 3)), np.zeros((n, 2, 2, 2), np.int32), 0.0, 0.02,
-                   rng.uniform(0.1, 2.0, (n, 7)), rng.uniform(0.1, 2.0, (n, 7)), np.array([1.0, 2.0, 3.0]),
-                   True, rng.uniform(0.1, 2.0, (n, 7)), rng.uniform(0.1, 2.0, (n, 7)))
-    for _ in range(50):
-        dq = rng.choice([0.0, 0.005, 0.05, 0.2, 0.6, 2.0], n) * rng.choice([-1.0, 1.0], n)
-        w = rng.uniform(0, 1, n)
-        one, batch = cov.sigma_arm_one(dq, w), cov.sigma_arm(dq[None, :], w[None, :])
-        assert one is not None and batch is not None
-        np.testing.assert_allclose(one, batch[0], rtol=1e-12)
+    n, stick = 3, 0.02
+    band = np.array([1.0, 2.0, 3.0])
+    hyb, phys = rng.uniform(0.1, 2.0, (n, 7)), rng.uniform(0.1, 2.0, (n, 7))
+    cov = Coverage(np.arange(n), np.zeros((n, 3)), np.ones((n, 3)), np.zeros((n, 2, 2, 2), np.int32), 0.0, stick,
+                   rng.uniform(0.1, 2.0, (n, 7)), rng.uniform(0.1, 2.0, (n, 7)), band, True, hyb, phys)
+
+    def expected(dq: np.ndarray, w: np.ndarray) -> np.ndarray:
+        b = min(max(int(np.searchsorted(SPEED_EDGES, np.abs(dq).max(), side="right")) - 1, 0), 6)
+        s = np.sqrt(w * hyb[:, b] ** 2 + (1.0 - w) * phys[:, b] ** 2)
+        return np.where(np.abs(dq) < stick, np.maximum(s, band / np.sqrt(3.0)), s)
+
+    dqs = rng.choice([0.0, 0.005, 0.05, 0.2, 0.6, 2.0], (50, n)) * rng.choice([-1.0, 1.0], (50, n))
+    ws = rng.uniform(0, 1, (50, n))
+    many = cov.sigma_arm(dqs, ws)
+    assert many is not None and many.shape == (50, n)
+    for dq, w, row in zip(dqs, ws, many, strict=True):
+        one = cov.sigma_arm(dq, w)
+        assert one is not None and one.shape == (n,)
+        np.testing.assert_allclose(one, expected(dq, w), rtol=1e-12)
+        np.testing.assert_allclose(row, expected(dq, w), rtol=1e-12)
     cov.sigma_hybrid_arm = None
-    assert cov.sigma_arm_one(np.zeros(n), np.ones(n)) is None
+    assert cov.sigma_arm(np.zeros(n), np.ones(n)) is None

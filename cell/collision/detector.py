@@ -234,7 +234,7 @@ class CollisionDetector:
                 moving = np.minimum(1.0, speed / s.stick_speed)
                 factor = s.rest_sigma_factor + (s.sigma_factor - s.rest_sigma_factor) * moving
             level = self._levels.sigma(dq[None, :], w[None, :])[0]
-            arm = self._levels.sigma_arm_one(dq, w)
+            arm = self._levels.sigma_arm(dq, w)
             if arm is not None:
                 # A slow joint of a fast arm errs as the arm's fastest joint makes it (coupling, velocity products).
                 level = np.maximum(level, arm)

@@ -52,13 +52,13 @@ def fast_moves(robot: RobotModel, cfg: CellConfig, ex: ExcitationConfig, dt: flo
     extrapolation and the collision detector widens its thresholds.  The moves are timed by the planner
     `plan` uses (its joint speed fraction and TCP speed limit, `planner_cfg`) on the nominal rigid body
     (the identified model does not exist yet) plus a bound on the rotors' inertia, at `fc.torque_scale` of
-    its torque limit and under `fc.acceleration_limits`.  The motion starts
-    with a collision-free move from `start` (default: home) to the first pose.  The caller runs it under a
-    TCP speed stop of at least `planner_cfg.tcp_speed_limit`."""
+    its torque limit and under `fc.acceleration_limits`.  The motion starts with a collision-free move from
+    `start` (default: home) to the first pose.  The caller runs it under a TCP speed stop of at least
+    `planner_cfg.tcp_speed_limit`."""
     fc = fc or FastConfig()
     p1 = P1Model(robot)
     rotor = np.asarray(fc.rotor_inertia_bound, float)
-    pcfg = dataclasses.replace(planner_cfg, toppra_gridpoints=fc.gridpoints, gridpoints=fc.gridpoints,
+    pcfg = dataclasses.replace(planner_cfg, toppra_gridpoints=fc.gridpoints,
                                acceleration_limits=list(fc.acceleration_limits))
 
     def torque(q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:

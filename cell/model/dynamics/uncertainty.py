@@ -129,43 +129,28 @@ class Coverage:
 
     def sigma(self, dq: np.ndarray, w: np.ndarray) -> np.ndarray:
         """(N, n) one-sigma torque uncertainty [N m] for speeds `dq` and trust `w` (see the module docstring)."""
-        return self._sigma(np.atleast_2d(dq), w, self.sigma_hybrid, self.sigma_physics)
+        dq = np.atleast_2d(dq)
+        b = np.clip(np.searchsorted(SPEED_EDGES, np.abs(dq), side="right") - 1, 0, len(SPEED_EDGES) - 2)
+        cols = np.arange(dq.shape[1])[None, :]
+        return self._blended(self.sigma_hybrid[cols, b], self.sigma_physics[cols, b], w, dq)
 
     def sigma_arm(self, dq: np.ndarray, w: np.ndarray) -> np.ndarray | None:
-        """(N, n) the levels by the arm's fastest joint (`sigma_hybrid_arm`) at speeds `dq`, trust `w`; None
-        for a model without them."""
+        """The levels by the arm's fastest joint (`sigma_hybrid_arm`) at speeds `dq`, trust `w`: (n,) for one
+        sample (the detector's, every control period), (N, n) for N; None for a model without them."""
         if self.sigma_hybrid_arm is None or self.sigma_physics_arm is None:
             return None
-        dq = np.atleast_2d(dq)
-        fastest = np.repeat(np.abs(dq).max(axis=1, keepdims=True), dq.shape[1], axis=1)
-        return self._sigma(fastest, w, self.sigma_hybrid_arm, self.sigma_physics_arm, dq)
+        fastest = np.abs(dq).max(axis=-1)
+        b = np.minimum(np.maximum(SPEED_EDGES.searchsorted(fastest, side="right") - 1, 0), len(SPEED_EDGES) - 2)
+        # One bin a sample, every joint's level in it.
+        return self._blended(self.sigma_hybrid_arm[:, b].T, self.sigma_physics_arm[:, b].T, w, dq)
 
-    def sigma_arm_one(self, dq: np.ndarray, w: np.ndarray) -> np.ndarray | None:
-        """`sigma_arm` of one sample (n,), without batch overhead (the detector's path, every control period)."""
-        if self.sigma_hybrid_arm is None or self.sigma_physics_arm is None:
-            return None
-        b = min(max(int(SPEED_EDGES.searchsorted(float(np.abs(dq).max()), side="right")) - 1, 0), len(SPEED_EDGES) - 2)
-        sh = self.sigma_hybrid_arm[:, b]
-        s = np.sqrt(w * sh * sh + (1.0 - w) * self.sigma_physics_arm[:, b] ** 2) if self.blend else sh
+    def _blended(self, sh: np.ndarray, sp: np.ndarray, w: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """The hybrid's level `sh` blended with the physics part's `sp` by the trust `w`, floored at the static
+        band's spread where a joint sticks (its own speed `dq`)."""
+        # Without blending the prediction keeps its whole learned part: its own level, the trust only reported.
+        s = np.sqrt(w * sh**2 + (1.0 - w) * sp**2) if self.blend else sh
         if self.stick_speed > 0:
-            s = np.where(np.abs(dq) < self.stick_speed, np.maximum(s, self.static_band / np.sqrt(3.0)), s)
-        return s
-
-    def _sigma(self, speed: np.ndarray, w: np.ndarray, hybrid: np.ndarray, physics: np.ndarray,
-               own: np.ndarray | None = None) -> np.ndarray:
-        """The levels of the tables at `speed`'s bins; the sticking floor by each joint's own speed (`own`,
-        default `speed`)."""
-        dq = speed
-        b = np.minimum(np.maximum(np.searchsorted(SPEED_EDGES, np.abs(dq), side="right") - 1, 0), len(SPEED_EDGES) - 2)
-        cols = np.arange(dq.shape[1])[None, :]
-        sh = hybrid[cols, b]
-        if self.blend:
-            sp = physics[cols, b]
-            s = np.sqrt(w * sh**2 + (1.0 - w) * sp**2)
-        else:  # the prediction keeps its whole learned part: its own level, the trust only reported
-            s = sh
-        if self.stick_speed > 0:
-            sticking = np.abs(dq if own is None else own) < self.stick_speed
+            sticking = np.abs(dq) < self.stick_speed
             s = np.where(sticking, np.maximum(s, self.static_band / np.sqrt(3.0)), s)
         return s
 
