@@ -54,7 +54,7 @@ class PegConfig:
     survey_confirm_s: float = 0.05  # hold still after a first crossing; no second one in this time: noise
     # Arrived above a touch point, the reference holds this long before the descent and its touch test: as the
     # joints come to rest they stick, and the virtual sensor's reading kicks along the last motion for a few
-    # periods (up to 20 N on its fast touch channel), which read as a touch would fit a tilted face.
+    # periods (9.5-11 N on its fast touch channel in free air), which read as a touch would fit a tilted face.
     survey_settle_s: float = 0.08
     surveyed_approach_height_m: float = 0.0005  # approach start above the surveyed mouth (known to ~0.1 mm)
     max_hole_tilt_deg: float = 5.0  # the surveyed face tilted further than this: fail (not the expected fixture)
