@@ -86,7 +86,7 @@ class Wrench:
 
     @property
     def valid(self) -> bool:
-        return bool(np.all(np.isfinite(self.force)) and np.all(np.isfinite(self.torque)))
+        return bool(np.isfinite(self.force).all() and np.isfinite(self.torque).all())
 
 
 @dataclass(frozen=True)
@@ -222,7 +222,8 @@ class Arm(ABC):
                 raise
             for name in ("q", "dq", "tau"):
                 value = getattr(state, name)
-                if value.shape != (self.n_joints,) or not np.all(np.isfinite(value)):
+                # (Array methods, not numpy's dispatching functions: this runs every control period.)
+                if value.shape != (self.n_joints,) or not np.isfinite(value).all():
                     reason = f"arm state field {name} is invalid: {value!r}"
                     self.fault(reason)
                     raise DriverError(reason)
@@ -230,7 +231,7 @@ class Arm(ABC):
             # state to command from: a target near it would be clipped toward the reading, not the range.
             lim = self.limits
             outside = (state.q < lim.lower - LIMIT_TOLERANCE_RAD) | (state.q > lim.upper + LIMIT_TOLERANCE_RAD)
-            if np.any(outside):
+            if outside.any():
                 j = int(np.flatnonzero(outside)[0])
                 reason = (f"joint {j + 1} reported at {np.degrees(state.q[j]):.4g} deg, outside its limits "
                           f"[{np.degrees(lim.lower[j]):.4g}, {np.degrees(lim.upper[j]):.4g}] deg")
@@ -254,13 +255,14 @@ class Arm(ABC):
                 raise CommandRejectedError(
                     f"command refused: target has shape {requested.shape}, expected ({self.n_joints},)"
                 )
-            if not np.all(np.isfinite(requested)):
+            if not np.isfinite(requested).all():
                 raise CommandRejectedError(f"command refused: non-finite target {requested!r}")
-            q = np.clip(requested, self.limits.lower, self.limits.upper)
+            # Clipped as np.clip does (a finite target), without its dispatch: this runs every control period.
+            q = np.minimum(np.maximum(requested, self.limits.lower), self.limits.upper)
             assert self._last_sent is not None
             max_step = self.limits.velocity * self.speed_scale * self.dt
-            q = np.clip(q, self._last_sent - max_step, self._last_sent + max_step)
-            clipped = bool(np.any(np.abs(q - requested) > 1e-12))
+            q = np.minimum(np.maximum(q, self._last_sent - max_step), self._last_sent + max_step)
+            clipped = bool((np.abs(q - requested) > 1e-12).any())
             try:
                 self._write_target(q)
             except DriverError as exc:

@@ -46,6 +46,8 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -108,6 +110,11 @@ def _beyond_coverage(coverage: Coverage | None, n: int) -> tuple[np.ndarray, np.
     # Trust 0 with blending: the physics part's level in that speed bin.
     edge = dataclasses.replace(coverage, blend=True).sigma(finite[None, :], np.zeros((1, n)))[0]
     return v_max, edge
+
+
+def _window_max(window: Iterable[np.ndarray]) -> np.ndarray:
+    """The element-wise largest of a window's arrays (pairwise: cheaper than stacking them every period)."""
+    return functools.reduce(np.maximum, window)
 
 
 class CollisionDetector:
@@ -233,7 +240,7 @@ class CollisionDetector:
                 # removed and the static band term bounds: counted once there, not sigma_factor times.
                 moving = np.minimum(1.0, speed / s.stick_speed)
                 factor = s.rest_sigma_factor + (s.sigma_factor - s.rest_sigma_factor) * moving
-            level = self._levels.sigma(dq[None, :], w[None, :])[0]
+            level = self._levels.sigma(dq, w)
             arm = self._levels.sigma_arm(dq, w)
             if arm is not None:
                 # A slow joint of a fast arm errs as the arm's fastest joint makes it (coupling, velocity products).
@@ -249,7 +256,7 @@ class CollisionDetector:
         if s.stick_speed > 0 and self.coverage is not None:
             # A joint zeroed at rest held its friction somewhere in its band; one that has moved since may stick
             # anywhere in it again, as far as the other edge (a hard stop leaves it loaded there): twice the band.
-            band = self.coverage.static_band * np.where(self._travel > self.MOVED_RAD, 2.0, 1.0)
+            band = self.coverage.static_band * (1.0 + (self._travel > self.MOVED_RAD))
             held = np.maximum(0.0, 1.0 - speed / s.stick_speed)
             if self._cmd_speed:
                 # A joint its command holds (still over the window: slower than the speed at which the model's
@@ -257,7 +264,7 @@ class CollisionDetector:
                 # it: it creeps (under stick_speed), its friction still anywhere in its band.  Only the command says
                 # so: a joint an impact stops while its command moves on, however slowly, gains nothing; nor does a
                 # held joint an impact jolts into sliding (from twice stick_speed on).
-                by_cmd = (np.maximum(0.0, 1.0 - np.asarray(self._cmd_speed).max(axis=0) / self._held_speed)
+                by_cmd = (np.maximum(0.0, 1.0 - _window_max(self._cmd_speed) / self._held_speed)
                           * np.minimum(np.maximum(2.0 - speed / s.stick_speed, 0.0), 1.0))
                 held = np.maximum(held, by_cmd)
                 # The model's friction follows the sign of the creep speed (a full Coulomb level from a few mrad/s
@@ -267,17 +274,15 @@ class CollisionDetector:
                     thr += np.abs(self._creep_friction(q, dq, self._cmd_v)) * by_cmd
             thr += band * held
         if s.inertia_uncertainty > 0:
-            if self._cmd_inertial:
-                inertial = np.asarray(self._cmd_inertial).max(axis=0)
-            else:  # no command stream (a detector fed states only): the measured motion's, held over the
-                # same window (the estimate swings through zero while a hard stop rings)
-                inertial = np.asarray(self._meas_inertial).max(axis=0)
+            # Without a command stream (a detector fed states only): the measured motion's, held over the same
+            # window (the estimate swings through zero while a hard stop rings).
+            inertial = _window_max(self._cmd_inertial if self._cmd_inertial else self._meas_inertial)
             thr += s.inertia_uncertainty * inertial
         if s.payload_uncertainty_kg > 0:
             g = self._payload_gravity(q)
             thr += s.payload_uncertainty_kg * np.abs(g - self._g_zero if self._zeroed else g)
             if self._cmd_payload:
-                thr += s.payload_uncertainty_kg * np.asarray(self._cmd_payload).max(axis=0)
+                thr += s.payload_uncertainty_kg * _window_max(self._cmd_payload)
         return thr
 
     def _creep_friction(self, q: np.ndarray, dq: np.ndarray, v_ref: np.ndarray) -> np.ndarray:
@@ -289,7 +294,7 @@ class CollisionDetector:
     def update(self, state: ArmState) -> np.ndarray:
         """One period: the residual (N·m), its thresholds and the fast tool force; returns the residual."""
         q = np.asarray(state.q, float)
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(state.dq)) and np.all(np.isfinite(state.tau))):
+        if not (np.isfinite(q).all() and np.isfinite(state.dq).all() and np.isfinite(state.tau).all()):
             raise SafetyStopError("collision detector: non-finite joint state (q, q' or torque): cannot check "
                                   "for collisions")
         # Over a wire the host may read the controller's previous sample again (no new cycle yet): a
@@ -297,7 +302,7 @@ class CollisionDetector:
         # robot's counter says so even when a read tore between two cycles (joints from the newer one).
         last = self._last
         if last is not None and (
-                (np.array_equal(q, last.q) and np.array_equal(state.tau, last.tau))
+                ((q == last.q).all() and (np.asarray(state.tau) == last.tau).all())
                 or (self.over_wire and (state.seq == last.seq != 0 or state.t <= last.t))):
             self.repeats += 1
             self.held = True  # the same sample checked again would count as another period over

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from cell.config import SafetyConfig
@@ -29,14 +31,16 @@ class SafetyMonitor:
     def check_state(self, state: ArmState, wrench: Wrench | None) -> None:
         if not state.status.ok:
             raise SafetyStopError(f"controller reports {state.status}")
+        # (Array methods and sqrt(f.f), numpy's own norm of a vector, without the dispatch of its functions:
+        # this runs every control period.)
         over = np.abs(state.tau) > self.max_torque
-        if np.any(over):
+        if over.any():
             j = int(np.argmax(np.abs(state.tau) / self.max_torque))
             raise SafetyStopError(
                 f"joint {j + 1} torque {state.tau[j]:.1f} N·m exceeds limit {self.max_torque[j]:.1f} N·m"
             )
         fast = np.abs(state.dq) > self.max_speed
-        if np.any(fast):
+        if fast.any():
             j = int(np.argmax(np.abs(state.dq) / self.max_speed))
             raise SafetyStopError(
                 f"joint {j + 1} speed {np.degrees(state.dq[j]):.1f} deg/s exceeds limit "
@@ -52,26 +56,27 @@ class SafetyMonitor:
                 )
             return
         self._invalid_wrench = 0
-        f = float(np.linalg.norm(wrench.force))
+        f = math.sqrt(wrench.force.dot(wrench.force))
         if f > self.cfg.max_tool_force_n:
             raise SafetyStopError(f"tool force {f:.1f} N exceeds limit {self.cfg.max_tool_force_n:.1f} N")
-        m = float(np.linalg.norm(wrench.torque))
+        m = math.sqrt(wrench.torque.dot(wrench.torque))
         if m > self.cfg.max_tool_torque_nm:
             raise SafetyStopError(f"tool moment {m:.2f} N·m exceeds limit {self.cfg.max_tool_torque_nm:.2f} N·m")
 
     def check_command(self, q_cmd: np.ndarray) -> None:
-        if q_cmd.shape != self.lower.shape or not np.all(np.isfinite(q_cmd)):
+        if q_cmd.shape != self.lower.shape or not np.isfinite(q_cmd).all():
             raise SafetyStopError(f"non-finite or malformed joint target rejected: {q_cmd!r}")
-        if np.any(q_cmd < self.lower) or np.any(q_cmd > self.upper):
+        if (q_cmd < self.lower).any() or (q_cmd > self.upper).any():
             j = int(np.argmax(np.maximum(self.lower - q_cmd, q_cmd - self.upper)))
             raise SafetyStopError(
                 f"joint {j + 1} target {np.degrees(q_cmd[j]):.1f} deg is outside its limits"
             )
         tcp = self.robot.tcp_pose(q_cmd).translation
-        if np.any(tcp < self.ws_min) or np.any(tcp > self.ws_max):
+        if (tcp < self.ws_min).any() or (tcp > self.ws_max).any():
             raise SafetyStopError(f"TCP target {np.round(tcp, 3).tolist()} m is outside the workspace box")
         if self._last_tcp is not None:
-            speed = float(np.linalg.norm(tcp - self._last_tcp)) / self.dt
+            step = tcp - self._last_tcp
+            speed = math.sqrt(step.dot(step)) / self.dt
             if speed > self.cfg.max_tcp_speed:
                 raise SafetyStopError(
                     f"commanded TCP speed {speed:.2f} m/s exceeds limit {self.cfg.max_tcp_speed:.2f} m/s"

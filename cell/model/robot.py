@@ -102,7 +102,7 @@ class RobotModel:
             norm = math.sqrt(dq.dot(dq))
             if norm > max_step:
                 dq *= max_step / norm
-            q = np.clip(q + dq, lower, upper)
+            q = np.minimum(np.maximum(q + dq, lower), upper)  # np.clip's result, without its dispatch
         err = self.pose_error(q, target)
         return q, bool(math.sqrt(err.dot(err)) < tol)
 

@@ -10,7 +10,6 @@ sample alone and is needed by some observers only (losses, trust weights, M, C, 
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import weakref
@@ -159,7 +158,7 @@ class ContactPredictor(FastPredictor):
         x = self._x
         if self._has_extra:
             x[self._nw:] = self._derived(q, dq, rigid + external)
-        learned = np.zeros_like(rigid)
+        learned = np.zeros(self.n)
         learned[self.outputs] = self.forest.predict(x)
         if keep_row and self._load_trees is not None:
             assert isinstance(self.forest, FlatForest)
@@ -176,7 +175,7 @@ class ContactPredictor(FastPredictor):
         assert isinstance(self.forest, FlatForest)
         row = self._row.copy()
         row[self._load_cols] = self._derived.load_values(dq, rigid + external)
-        learned = np.zeros_like(rigid)
+        learned = np.zeros(self.n)
         learned[self.outputs] = self.forest.predict_changed(row, self._load_trees, self._leaves)
         return self._trust(q, dq, ddq, learned)
 
@@ -188,7 +187,7 @@ class ContactPredictor(FastPredictor):
             if self.coverage is not None:  # a blending model (H1) whose trust can fall: the learned part by it
                 learned *= w
             if self.want_variance:
-                self.variance = trust.sigma(dq[None, :], w[None, :])[0] ** 2
+                self.variance = trust.sigma(dq, w) ** 2
         return learned
 
 
@@ -282,5 +281,6 @@ class ModelStep:
         own = self._own_sample.get(key)
         if own is None:
             learned = self.fast.learned_again(sample.q, sample.v, sample.a, sample.rigid, self._own_load[key])
-            own = self._own_sample[key] = dataclasses.replace(sample, learned=learned)
+            own = self._own_sample[key] = FreeMotion(q=sample.q, v=sample.v, a=sample.a, rigid=sample.rigid,
+                                                     learned=learned, variance=sample.variance)
         return own

@@ -88,6 +88,11 @@ class DiagonalKalman:
     def x(self) -> np.ndarray:
         return self._x.reshape(-1, 1)
 
+    @property
+    def estimate(self) -> np.ndarray:
+        """The state as a vector (n,): a view, not to be modified."""
+        return self._x
+
     @x.setter
     def x(self, value: np.ndarray) -> None:
         self._x = np.array(value, float).reshape(-1)
@@ -180,7 +185,7 @@ class KalmanObserver:
         R = self.R
         if self.model_noise:
             R = np.maximum(self.R, sample.variance)
-            kf.R = np.diag(R)
+            kf.r = R
         if not self._started:  # the first sample is the best initial state there is
             kf.x = z.reshape(-1, 1).copy()
             self._started = True
@@ -191,17 +196,20 @@ class KalmanObserver:
                 # swings the residual by +-10 N·m for a few periods, alternating in sign; clipped to
                 # `gate` standard deviations it moves the estimate by little.  A real contact pushes
                 # one way: after GATE_RUN same-signed excursions in a row it passes unclipped.
-                x = kf.x.reshape(-1)
+                x = kf.estimate
                 bound = self.gate * np.sqrt(kf.p + R)
                 y = z - x
                 outside = np.abs(y) > bound
-                sign = np.sign(y)
-                same = outside & (sign == np.sign(self._run))
-                self._run = np.where(same, self._run + sign, np.where(outside, sign, 0.0))
-                clip = outside & (np.abs(self._run) <= self.GATE_RUN)
-                z = np.where(clip, x + np.clip(y, -bound, bound), z)
-            kf.update(z.reshape(-1, 1))
-        out = np.asarray(kf.x, float).reshape(-1).copy()
+                if outside.any():
+                    sign = np.sign(y)
+                    same = outside & (sign == np.sign(self._run))
+                    self._run = np.where(same, self._run + sign, np.where(outside, sign, 0.0))
+                    clip = outside & (np.abs(self._run) <= self.GATE_RUN)
+                    z = np.where(clip, x + np.minimum(np.maximum(y, -bound), bound), z)
+                else:  # every innovation inside the gate (the usual period): the runs end, nothing is clipped
+                    self._run = np.zeros(self.n)
+            kf.update(z)
+        out = kf.estimate.copy()
         self.step.publish(self, out)
         return out
 
@@ -277,8 +285,9 @@ class MomentumObserver:
             # read spans more than a period, and the momentum moved over all of it.
             h = self.dt
             if self._t is not None:
-                h = float(state.t - self._t) if self.exact_steps else \
-                    float(np.clip(state.t - self._t, 0.25 * self.dt, 4.0 * self.dt))
+                h = float(state.t - self._t)
+                if not self.exact_steps:
+                    h = min(max(h, 0.25 * self.dt), 4.0 * self.dt)
             self.integral += (0.5 * (beta + self._beta) + self.r) * h
         else:
             h = float(state.t - self._t) if self.exact_steps and self._t is not None else self.dt

@@ -5,8 +5,6 @@ from __future__ import annotations
 import enum
 import math
 
-import numpy as np
-
 from tasks.peg.config import PegConfig
 
 
@@ -29,7 +27,7 @@ def classify(fz: float, mx: float, my: float, low_depth: float, high_depth: floa
     moment).  Aligned: the whole face in the hole, pushing along the axis without a side load.
     """
     m = math.hypot(mx, my)
-    if not (np.isfinite(fz) and np.isfinite(m)):  # a missing reading is never a contact outside
+    if not (math.isfinite(fz) and math.isfinite(m)):  # a missing reading is never a contact outside
         return Contact.ALIGNED if high_depth >= cfg.engage_depth_m else Contact.FREE
     if fz < cfg.contact_force_n and m < cfg.contact_moment_nm:
         return Contact.FREE

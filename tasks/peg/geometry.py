@@ -12,6 +12,7 @@ from cell.control.trajectory import TOOL_DOWN
 from tasks.peg.config import PegConfig
 
 EZ = np.array([0.0, 0.0, 1.0])
+DOWN = -EZ
 
 Segment = tuple[pin.SE3, pin.SE3, float]  # (from, to, duration [s])
 
@@ -19,8 +20,9 @@ Segment = tuple[pin.SE3, pin.SE3, float]  # (from, to, duration [s])
 def rim_points(pose: pin.SE3, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """Lowest and highest points of the peg's bottom rim (the TCP is the face centre, tool z along the peg)."""
     z = pose.rotation[:, 2]
-    w = -EZ - float(-EZ @ z) * z  # world down, projected onto the face plane
-    n = float(np.linalg.norm(w))
+    # World down, projected onto the face plane (down . z is -z_z; sqrt(w.w) is numpy's norm of a vector).
+    w = DOWN - float(-z[2]) * z
+    n = math.sqrt(w.dot(w))
     if n < 1e-9:  # upright: every rim point is as low as the centre
         return pose.translation.copy(), pose.translation.copy()
     w /= n

@@ -126,9 +126,9 @@ class PegInHoleTask(MachineTask, PegTriggers):
         self.tilt = tilt_of(tip.rotation)
         if self.state not in (PegState.MOVE_TO_START, PegState.TARE):
             self.max_depth = max(self.max_depth, self.depth)
-            if np.isfinite(fz):
+            if math.isfinite(fz):
                 self.peak_force = max(self.peak_force, abs(fz))
-            if np.isfinite(mx) and np.isfinite(my):
+            if math.isfinite(mx) and math.isfinite(my):
                 self.peak_moment = max(self.peak_moment, math.hypot(mx, my))
         contact = classify(fz, mx, my, self.low_depth, self.high_depth, self.cfg)
         if contact != self.contact:
@@ -164,11 +164,11 @@ class PegInHoleTask(MachineTask, PegTriggers):
     def _check_limits(self, fz: float, mx: float, my: float) -> None:
         c = self.cfg
         m = math.hypot(mx, my)
-        tilt = math.degrees(float(np.linalg.norm(self.tilt)))
-        if np.isfinite(fz) and fz > c.max_force_n:
+        tilt = math.degrees(math.sqrt(self.tilt.dot(self.tilt)))  # numpy's norm of a vector, without its checks
+        if math.isfinite(fz) and fz > c.max_force_n:
             self.fail_because(f"push force {fz:.1f} N exceeded the task limit {c.max_force_n:.1f} N "
                               f"({self.state.value}, depth {self.depth * 1e3:.1f} mm)")
-        elif np.isfinite(m) and m > c.max_moment_nm:
+        elif math.isfinite(m) and m > c.max_moment_nm:
             self.fail_because(f"tool moment {m:.2f} N·m exceeded the task limit {c.max_moment_nm:.2f} N·m "
                               f"({self.state.value}, depth {self.depth * 1e3:.1f} mm)")
         elif tilt > c.max_tilt_deg:
@@ -271,7 +271,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
         # let the impact ring out, average the wrench and classify with the kinematic depths.
         c = self.cfg
         self._setpoint = 0.0
-        if self.t_state >= c.probe_settle_s and np.isfinite(fz):
+        if self.t_state >= c.probe_settle_s and math.isfinite(fz):
             self._samples.append(np.array([fz, mx, my]))
         if self.t_state >= c.probe_settle_s + c.probe_average_s or self.t_state >= c.max_probe_s:
             if not self._samples:
@@ -363,8 +363,8 @@ class PegInHoleTask(MachineTask, PegTriggers):
             self.bore.step(self.ref, self._tip)
             return False
         axis = self.ref.rotation[:, 2]
-        m = math.hypot(mx, my) if np.isfinite(mx) and np.isfinite(my) else 0.0
-        if not (np.isfinite(fz) and fz >= c.contact_force_n):
+        m = math.hypot(mx, my) if math.isfinite(mx) and math.isfinite(my) else 0.0
+        if not (math.isfinite(fz) and fz >= c.contact_force_n):
             # Nothing pushes back: feed at a fixed speed (not through the law), slowing as a side load
             # builds (the hole's axis is not the peg's: a wedge ahead is far stiffer than the servo is fast).
             # Slowly near the mouth, and after a stall (a wedge ahead) unless the fit is tight (bore re-measured).
@@ -382,7 +382,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
                 relieve(self.ref, self._tip, self.law)
                 self._feeding = False
             regulate(self.ref, self.law, fz, c.insert_force_n, axis, c.insert_speed_limit_mps * self.dt)
-        if m > c.side_moment_nm or (np.isfinite(fz) and fz > c.max_force_n * 0.6):
+        if m > c.side_moment_nm or (math.isfinite(fz) and fz > c.max_force_n * 0.6):
             # reflex: a wedge ahead; stop pushing into it before the law catches up
             relieve(self.ref, self._tip, self.law)
         comply(self.ref, mx, my, self.cfg, self.dt)
@@ -430,7 +430,7 @@ class PegInHoleTask(MachineTask, PegTriggers):
         # Starting from rest the arm sticks (joint stiction; measured: the F/T sensor winds to -30..-80 N
         # for ~0.1-0.2 s before it breaks free, in free air as in the hole): a pull is a stuck peg only
         # when it lasts.
-        self._pull_t = self._pull_t + self.dt if (np.isfinite(fz) and -fz > self.cfg.max_pull_n) else 0.0
+        self._pull_t = self._pull_t + self.dt if (math.isfinite(fz) and -fz > self.cfg.max_pull_n) else 0.0
         if self._pull_t > self.cfg.max_pull_s:
             self.fail_because(f"peg stuck while retracting (pull {-fz:.1f} N for {self._pull_t:.2f} s)")
             return False

@@ -301,7 +301,7 @@ class FastPredictor:
         """One-sigma uncertainty [N·m] of the last `predict_one` (NaN without a coverage model)."""
         if self.trust_model is None:
             return np.full(self.n, np.nan)
-        return self.trust_model.sigma(self._last_dq[None, :], self._last_w[None, :])[0]
+        return self.trust_model.sigma(self._last_dq, self._last_w)
 
     def step(self, q: np.ndarray, dq: np.ndarray | None = None) -> np.ndarray:
         v, a = self.derivs.step(q, dq)

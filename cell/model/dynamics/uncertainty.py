@@ -118,20 +118,22 @@ class Coverage:
             # as much as the arithmetic.)
             x = np.array((q[js], dq[js], ddq[js])).T
             idx = np.floor((x - self.lo) / self.width).astype(np.int64)
-            inside = ((idx >= 0) & (idx < self.counts.shape[1])).all(axis=-1)
-            c = np.zeros(len(js))
-            k = inside.nonzero()[0]
-            c[k] = self.counts[k, idx[k, 0], idx[k, 1], idx[k, 2]]
+            last = self.counts.shape[1] - 1
+            inside = ((idx >= 0) & (idx <= last)).all(axis=-1)
+            # Every joint's cell read at its index held on the grid, then zeroed where it lies outside.
+            at = np.minimum(np.maximum(idx, 0), last)
+            c = self.counts[np.arange(len(js)), at[:, 0], at[:, 1], at[:, 2]] * inside
             w[js] = np.minimum(1.0, c / min_count)
         if stick and self.stick_speed > 0:
             w[js] *= np.minimum(1.0, np.abs(dq[js]) / self.stick_speed)
         return w
 
     def sigma(self, dq: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """(N, n) one-sigma torque uncertainty [N m] for speeds `dq` and trust `w` (see the module docstring)."""
-        dq = np.atleast_2d(dq)
-        b = np.clip(np.searchsorted(SPEED_EDGES, np.abs(dq), side="right") - 1, 0, len(SPEED_EDGES) - 2)
-        cols = np.arange(dq.shape[1])[None, :]
+        """One-sigma torque uncertainty [N m] for speeds `dq` and trust `w` (see the module docstring): (n,) for
+        one sample (the served path, every control period), (N, n) for N."""
+        # (Array methods rather than numpy's dispatching functions: one sample's arithmetic costs less than them.)
+        b = np.minimum(np.maximum(SPEED_EDGES.searchsorted(np.abs(dq), side="right") - 1, 0), len(SPEED_EDGES) - 2)
+        cols = np.arange(dq.shape[-1])
         return self._blended(self.sigma_hybrid[cols, b], self.sigma_physics[cols, b], w, dq)
 
     def sigma_arm(self, dq: np.ndarray, w: np.ndarray) -> np.ndarray | None:
