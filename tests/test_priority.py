@@ -70,3 +70,29 @@ def test_an_exception_in_the_block_still_restores_the_scheduling(scheduler):
     with pytest.raises(RuntimeError), priority.raised_priority(-10):
         raise RuntimeError("the task failed")
     assert scheduler["nice"] == 5
+
+
+def test_the_process_threads_are_raised_alike_and_given_back(scheduler, monkeypatch):
+    """A driver's reader thread, started before the loop, shares the interpreter lock with it: raised with it."""
+    import threading
+
+    policies: dict[int, int] = {}
+
+    def setscheduler(pid: int, policy: int, param: os.sched_param) -> None:
+        policies[pid] = policy
+
+    monkeypatch.setattr(os, "sched_getscheduler", lambda pid: policies.get(pid, os.SCHED_OTHER))
+    monkeypatch.setattr(os, "sched_setscheduler", setscheduler)
+    stop = threading.Event()
+    reader = threading.Thread(target=stop.wait, name="reader", daemon=True)
+    reader.start()
+    try:
+        with priority.raised_priority(other_threads=True) as raised:
+            assert raised == "realtime"
+            assert policies[0] == os.SCHED_FIFO and policies[reader.native_id] == os.SCHED_FIFO
+        assert policies[0] == os.SCHED_OTHER and policies[reader.native_id] == os.SCHED_OTHER
+        with priority.raised_priority():  # the loop's thread alone
+            assert reader.native_id not in policies or policies[reader.native_id] == os.SCHED_OTHER
+    finally:
+        stop.set()
+        reader.join()

@@ -7,6 +7,7 @@ arm and closes the recording before the loop returns (or re-raises an unexpected
 
 from __future__ import annotations
 
+import gc
 import logging
 import time
 from collections.abc import Callable
@@ -209,11 +210,19 @@ class ControlLoop:
         self._state_at_read = ""
 
     def run(self) -> LoopResult:
-        """Run the task to its end; on a wall clock at raised priority where the OS permits it."""
-        if isinstance(self.ticker, WallTicker):
-            with raised_priority():
+        """Run the task to its end; on a wall clock at raised priority where the OS permits it (the cell's driver
+        threads too), with what the process held before it out of the garbage collector's way."""
+        if not isinstance(self.ticker, WallTicker):
+            return self._run()
+        # A full collection walks every object the process holds (a long-lived process: thousands of model
+        # arrays and more), which can take longer than a period; frozen, the loop's collections walk only
+        # what it made itself.
+        gc.freeze()
+        try:
+            with raised_priority(other_threads=True):
                 return self._run()
-        return self._run()
+        finally:
+            gc.unfreeze()
 
     def _run(self) -> LoopResult:
         outcome, reason = "done", ""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -90,7 +91,7 @@ class RobotModel:
         # small products (norms as sqrt(x.x), numpy's own arithmetic for a vector, without its checks).
         m, d, tcp = self.model, self.data, self.tcp_id
         lower, upper = m.lowerPositionLimit, m.upperPositionLimit
-        regularise = damping * np.eye(6)
+        regularise = _regulariser(damping)
         local = pin.ReferenceFrame.LOCAL
         q = np.array(q_seed, float)
         for _ in range(iters):
@@ -119,6 +120,14 @@ class RobotModel:
 
     def rnea(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
         return np.array(pin.rnea(self.model, self.data, q, dq, ddq))
+
+
+@functools.lru_cache(maxsize=8)
+def _regulariser(damping: float) -> np.ndarray:
+    """damping * I (6x6) for the IK, made once per damping value (read-only: it is shared)."""
+    out = damping * np.eye(6)
+    out.flags.writeable = False
+    return out
 
 
 def load_robot(urdf: Path, tcp_offset: list[float], tool_mass: float, tool_com: list[float] | None) -> RobotModel:
