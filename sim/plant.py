@@ -104,6 +104,10 @@ class Plant:
         self._pad_mu = profile.tool.pad_friction
         self._f6 = np.zeros(6)
         self._v6 = np.zeros(6)
+        self._v3 = self._v6[3:]  # the pad's linear velocity (world frame), as mj_objectVelocity leaves it
+        self._knots = np.empty((4, 6))  # step()'s Hermite control rows
+        self._sensor_key: tuple[float, ...] | None = None  # the sensor figures _sensor_vectors was built from
+        self._sensor_vectors = (np.zeros(6), np.ones(6), np.zeros(6), np.zeros(6))
         self._saved = np.empty(mujoco.mj_stateSize(self.model, STEP_STATE))
         # Per geom: whether its contacts can come from the convex collider.  A scene without such a geom
         # that can collide (the wiping table) has nothing for `_physics_step` to check or take again.
@@ -157,6 +161,10 @@ class Plant:
         self._ctrl = d.ctrl[:12]  # the position servos' references, then the motors' torques
         self._act = d.actuator_force[:12]  # the position servos', then the motors'
         self._frictionloss = m.dof_frictionloss[arm]
+        self._qfrc_actuator = d.qfrc_actuator[arm]
+        self._xfrc, self._xipos = d.xfrc_applied, d.xipos
+        self._sensordata = d.sensordata[:6]
+        self._M_arm_T = self._M[arm, arm].T  # the arm's block of the mass matrix, as step() multiplies by it
 
     def _descends(self, body: int, ancestor: int) -> bool:
         while body > 0:
@@ -221,7 +229,6 @@ class Plant:
         n = self.substeps
         h = m.opt.timestep
         T = self.dt
-        arm = self._arm
         # The controller buffers the streamed targets by one period and interpolates them with a
         # cubic Hermite spline (central-difference velocities), as arm controllers do with streamed
         # set-points: during this period the reference runs from target[k-2] to target[k-1].  The
@@ -229,12 +236,17 @@ class Plant:
         p3, p2, p1 = self._targets
         self._command_queue.append(self.target.copy())
         p0 = self._command_queue[0]
-        # Hermite control data: positions p2, p1 and central-difference velocities (scaled by T).
-        knots = np.stack([p2, p1, (p1 - p3) / 2.0, (p0 - p2) / 2.0])
+        # Hermite control data: positions p2, p1 and central-difference velocities (scaled by T), written
+        # into one array (np.stack of the same rows costs more than the rest of this preamble).
+        knots = self._knots
+        knots[0], knots[1] = p2, p1
+        np.subtract(p1, p3, out=knots[2])
+        np.subtract(p0, p2, out=knots[3])
+        knots[2:] /= 2.0
         q_refs = self._hb @ knots
         dq_refs = self._hb1 @ knots / T
         mujoco.mj_fullM(m, d, self._M)
-        ff_inertia = (self._hb2 @ knots / T**2) @ self._M[arm, arm].T
+        ff_inertia = (self._hb2 @ knots / T**2) @ self._M_arm_T
         # The substep loop runs on Python floats: per joint, six numbers, where each numpy call on a
         # 6-vector costs as much as a dozen float operations.  Each expression keeps numpy's order of
         # operations, so the results are bit for bit those of the vectorised form.
@@ -248,6 +260,7 @@ class Plant:
         qpos, qvel, bias, act, ctrl = self._qpos, self._qvel, self._bias, self._act, self._ctrl
         ff, coulomb, stick, ripple = [0.0] * 6, [0.0] * 6, [0.0] * 6, [0.0] * 6
         joints = range(6)
+        pad = self._pad_body >= 0
         for k in range(n):
             q_ref, kd_dq, ffi = q_refs_l[k], kd_dq_l[k], ffi_l[k]
             q, v, b = qpos.tolist(), qvel.tolist(), bias.tolist()
@@ -267,14 +280,14 @@ class Plant:
             stick_e = np.exp(stick).tolist()  # numpy's exp: it rounds differently from math.exp
             ctrl[:] = q_ref + ff
             self._frictionloss[:] = [coulomb[j] + fs[j] * stick_e[j] + ripple[j] for j in joints]
-            if self._pad_body >= 0 or self.external_wrench is not None or self._xfrc_set:
+            if pad or self.external_wrench is not None or self._xfrc_set:
                 # Cartesian body forces (xfrc_applied), not joint-space ones: the F/T sensor reads
                 # body interaction forces and must feel both the friction and a hand on the tool.
                 # (Cleared once more after a hand lets go: a tool without a pad, the peg, would
                 # otherwise keep the last load forever.)
-                d.xfrc_applied[:] = 0.0
+                self._xfrc.fill(0.0)
                 self._xfrc_set = self.external_wrench is not None
-                if self._pad_body >= 0:
+                if pad:
                     self._wipe_friction()
                 if self.external_wrench is not None:
                     self._apply_tcp_wrench(self.external_wrench)
@@ -290,8 +303,8 @@ class Plant:
                 sat[j] = sat[j] + h if demand > effort[j] else 0.0
         self._saturated_s[:] = sat
         self.peak_demand[:] = peak
-        self._tau = np.array(d.qfrc_actuator[arm])  # clamped at the effort limit by MuJoCo
-        if np.any(self._saturated_s >= self.saturation_fault_s) and not self.status.error:
+        self._tau = self._qfrc_actuator.copy()  # clamped at the effort limit by MuJoCo
+        if max(sat) >= self.saturation_fault_s and not self.status.error:
             j = int(np.argmax(self._saturated_s))
             log.error("plant: joint %d motor saturated for %.0f ms: controller error",
                       j + 1, 1e3 * self._saturated_s[j])
@@ -344,22 +357,37 @@ class Plant:
         if not d.ncon:
             return
         contacts = d.contact
+        pad, body = self._pad_geom, self._pad_body
+        v = None  # the pad's velocity: the same at each of its contacts, taken at the first that pushes
+        load: list[float] = []  # the pad's Cartesian load, summed over its contacts as _push would add them
         for i, pair in enumerate(contacts.geom.tolist()):
-            if self._pad_geom not in pair:
+            if pad not in pair:
                 continue
             mujoco.mj_contactForce(m, d, i, self._f6)
-            fn = self._f6[0]
+            fn = self._f6.item(0)
             if fn <= 0.0:
                 continue
+            if v is None:
+                mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, body, self._v6, 0)
+                v = self._v3
             normal = contacts.frame[i, :3]
-            mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, self._pad_body, self._v6, 0)
-            v = self._v6[3:]
-            vt = v - normal * (v @ normal)
+            # (ndarray.dot: the same dot product as the @ operator, without the operator's dispatch.)
+            vt = v - normal * v.dot(normal)
             speed = math.sqrt(vt.dot(vt))  # np.linalg.norm's own arithmetic, without its checks
             if speed < 1e-9:
                 continue
             along = float(-self._pad_mu * fn * np.tanh(speed / v_eps))
-            self._push(self._pad_body, [along * x / speed for x in vt.tolist()], None, contacts.pos[i])
+            vx, vy, vz = vt.tolist()
+            fx, fy, fz = along * vx / speed, along * vy / speed, along * vz / speed
+            # The lever's moment r x F about the body's centre of mass, on Python floats (as in _push).
+            (px, py, pz), (cx, cy, cz) = contacts.pos[i].tolist(), self._xipos[body].tolist()
+            rx, ry, rz = px - cx, py - cy, pz - cz
+            if not load:
+                load = self._xfrc[body].tolist()
+            load = [s + f for s, f in zip(load, (fx, fy, fz, ry * fz - rz * fy, rz * fx - rx * fz, rx * fy - ry * fx),
+                                          strict=True)]
+        if load:
+            self._xfrc[body] = load
 
     def _apply_tcp_wrench(self, wrench: np.ndarray) -> None:
         """Apply a world-frame wrench at the TCP (a scripted 'hand' on the tool)."""
@@ -380,14 +408,17 @@ class Plant:
         d.xfrc_applied[body] += [fx, fy, fz, *moment]
 
     def _sample(self) -> ArmState:
-        d = self.data
-        tau = self._tau + self.rng.normal(0.0, 1.0, 6) * self._noise
+        # In place on the noise's array: the same operations as tau + noise * std (a sum does not depend on
+        # the order of its two terms), rounded to the quantum, without a new array each.
+        tau = self.rng.normal(0.0, 1.0, 6)
+        tau *= self._noise
+        tau += self._tau
         if self._quantum > 0:
-            tau = np.round(tau / self._quantum) * self._quantum
-        return ArmState(
-            t=self.t, q=np.array(d.qpos[self._arm]), dq=np.array(d.qvel[self._arm]), tau=tau,
-            status=self.status, seq=self.seq,
-        )
+            tau /= self._quantum
+            np.round(tau, out=tau)
+            tau *= self._quantum
+        return ArmState(t=self.t, q=self._qpos.copy(), dq=self._qvel.copy(), tau=tau, status=self.status,
+                        seq=self.seq)
 
     # ----------------------------------------------------------------------------- views
     def measured_state(self) -> ArmState:
@@ -421,15 +452,27 @@ class Plant:
 
     def sensor_reading(self) -> np.ndarray:
         """What the WACOH sensor would report: true wrench + unloaded offset + noise, quantised, saturated."""
+        noise, quantum, lo, hi = self._sensor_scales()
+        w = np.add(self._sensordata, self.sensor_offset)  # (the view true_sensor_wrench copies)
+        # One draw of six with per-axis scales: the generator takes the same standard normals in the same order
+        # as a draw of three forces then three torques, and scales each alike.
+        w += self.rng.normal(0.0, noise, 6)
+        w /= quantum
+        # Clipping only picks one of the three values: maximum and minimum do it without np.clip's overhead.
+        return np.minimum(np.maximum(np.round(w, out=w) * quantum, lo), hi)
+
+    def _sensor_scales(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The sensor's noise, quantum and saturation (low, high) per axis, forces then torques, built again
+        whenever the profile's figures change."""
         sp = self.profile.sensor
-        w = self.true_sensor_wrench() + self.sensor_offset
-        w[:3] += self.rng.normal(0.0, sp.noise_force_n, 3)
-        w[3:] += self.rng.normal(0.0, sp.noise_torque_nm, 3)
-        w[:3] = np.clip(np.round(w[:3] / sp.quantum_force_n) * sp.quantum_force_n,
-                        -sp.saturation_force_n, sp.saturation_force_n)
-        w[3:] = np.clip(np.round(w[3:] / sp.quantum_torque_nm) * sp.quantum_torque_nm,
-                        -sp.saturation_torque_nm, sp.saturation_torque_nm)
-        return w
+        key = (sp.noise_force_n, sp.noise_torque_nm, sp.quantum_force_n, sp.quantum_torque_nm,
+               sp.saturation_force_n, sp.saturation_torque_nm)
+        if key != self._sensor_key:
+            self._sensor_key = key
+            force, torque = np.ones(3), np.ones(3)
+            noise, quantum, saturation = (np.concatenate([force * key[i], torque * key[i + 1]]) for i in (0, 2, 4))
+            self._sensor_vectors = (noise, quantum, -saturation, saturation)
+        return self._sensor_vectors
 
     def contact_force_world(self) -> np.ndarray:
         """Sum of the contact forces the environment exerts on the tool (and its head), world frame."""

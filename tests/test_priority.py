@@ -86,13 +86,15 @@ def test_the_process_threads_are_raised_alike_and_given_back(scheduler, monkeypa
     stop = threading.Event()
     reader = threading.Thread(target=stop.wait, name="reader", daemon=True)
     reader.start()
+    tid = reader.native_id
+    assert tid is not None
     try:
         with priority.raised_priority(other_threads=True) as raised:
             assert raised == "realtime"
-            assert policies[0] == os.SCHED_FIFO and policies[reader.native_id] == os.SCHED_FIFO
-        assert policies[0] == os.SCHED_OTHER and policies[reader.native_id] == os.SCHED_OTHER
+            assert policies[0] == os.SCHED_FIFO and policies[tid] == os.SCHED_FIFO
+        assert policies[0] == os.SCHED_OTHER and policies[tid] == os.SCHED_OTHER
         with priority.raised_priority():  # the loop's thread alone
-            assert reader.native_id not in policies or policies[reader.native_id] == os.SCHED_OTHER
+            assert policies[tid] == os.SCHED_OTHER
     finally:
         stop.set()
         reader.join()

@@ -88,14 +88,14 @@ class DiagonalKalman:
     def x(self) -> np.ndarray:
         return self._x.reshape(-1, 1)
 
+    @x.setter
+    def x(self, value: np.ndarray) -> None:
+        self._x = np.array(value, float).reshape(-1)
+
     @property
     def estimate(self) -> np.ndarray:
         """The state as a vector (n,): a view, not to be modified."""
         return self._x
-
-    @x.setter
-    def x(self, value: np.ndarray) -> None:
-        self._x = np.array(value, float).reshape(-1)
 
     @property
     def P(self) -> np.ndarray:
