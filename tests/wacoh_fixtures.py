@@ -35,8 +35,24 @@ class Source:
         self.rng = np.random.default_rng(seed)
         self.produced: list[np.ndarray] = []
         self.lock = threading.Lock()
+        self._open = threading.Event()  # cleared by `hold`: the emulator waits here before its next record
+        self._open.set()
+        self._waiting = threading.Event()
+
+    def hold(self, timeout_s: float = 10.0) -> None:
+        """Stop the emulator before its next record; returns once it waits (every earlier record written)."""
+        self._open.clear()
+        if not self._waiting.wait(timeout_s):
+            raise TimeoutError("the emulator did not ask for another record")
+
+    def release(self) -> None:
+        self._waiting.clear()
+        self._open.set()
 
     def __call__(self) -> np.ndarray:
+        if not self._open.is_set():
+            self._waiting.set()
+            self._open.wait()
         with self.lock:
             if self.fresh_each_call:
                 self.value = random_wrench(self.rng)
