@@ -142,6 +142,28 @@ def test_contact_map_stays_bounded_at_a_singularity(robot):
         _contact_map(robot, 0.0)
 
 
+def test_maps_at_one_point_share_the_pose_and_read_as_maps_of_their_own(robot):
+    """The virtual sensor's map and the collision detector's share one Jacobian and SVD per pose: with poses
+    alternating, each reads at a pose exactly what it read there first, and the Jacobian is the pose's own."""
+    point = np.array([0.0, 0.0, 0.035])
+    cm, _ = _contact_map(robot, 0.3)
+    jac = JacobianMap(robot, point)
+    assert jac.pose is cm.pose and JacobianMap(robot, np.zeros(3)).pose is not jac.pose
+    poses = [np.array([0.1, 0.3, 1.6, -0.3, 1.5, 0.2]), np.array([-0.4, 0.1, 1.2, 0.5, 1.1, -0.3])]
+    tau = np.array([0.3, -0.4, 0.2, 0.15, -0.1, 0.12])
+    first: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    for k in range(6):
+        i = k % 2
+        q = poses[i]
+        now = (jac.map(q, tau).wrench, cm.map(q, tau).wrench, jac.jacobian(q).copy())
+        if i in first:
+            assert all(np.array_equal(a, b) for a, b in zip(now, first[i], strict=True))
+        first.setdefault(i, now)
+        # Well-conditioned: the Jacobian route is the exact inverse of the pose's own Jacobian.
+        assert np.allclose(now[0], np.linalg.solve(now[2].T, tau), atol=1e-9)
+    assert not np.allclose(first[0][2], first[1][2])
+
+
 def test_learned_map_serving_matches_xgboost(robot):
     rng = np.random.default_rng(1)
     q = rng.uniform(-1, 1, (600, 6))

@@ -18,6 +18,7 @@ Both report the wrench the tool exerts on the environment, in the F/T sensor's f
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,6 +45,57 @@ class Mapped:
     sigma_min: float
 
 
+class PoseJacobian:
+    """The LOCAL Jacobian of one wrench point and its SVD, kept for the last pose.
+
+    Every map on the same robot and point shares one (`pose_jacobian`): the virtual sensor's and the collision
+    detector's map the same pose every control period, and the SVD is the larger part of a map's work.  Callers
+    must not modify the returned arrays."""
+
+    def __init__(self, robot: RobotModel, point: np.ndarray) -> None:
+        self.robot = robot
+        self.model = robot.model.copy()
+        flange = self.model.frames[robot.flange_id]
+        frame = pin.Frame("wrench_point", flange.parentJoint, robot.flange_id,
+                          flange.placement * pin.SE3(np.eye(3), np.asarray(point, float)), pin.FrameType.OP_FRAME)
+        self.fid = self.model.addFrame(frame)
+        self.data = self.model.createData()
+        self._key = b""
+        self._J = np.zeros((6, robot.n))
+        self._svd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def jacobian(self, q: np.ndarray) -> np.ndarray:
+        q = np.asarray(q, float)
+        key = q.tobytes()
+        if key != self._key:
+            self._J = np.asarray(pin.computeFrameJacobian(self.model, self.data, q, self.fid,
+                                                          pin.ReferenceFrame.LOCAL))
+            self._key, self._svd = key, None
+        return self._J
+
+    def svd(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(U, s, Vt) of J(q): J = U diag(s) Vt, s descending."""
+        J = self.jacobian(q)
+        if self._svd is None:
+            U, s, Vt = np.linalg.svd(J, full_matrices=False)
+            self._svd = (U, s, Vt)
+        return self._svd
+
+
+# Held by the maps that use them: a point's cache goes with the last map on its robot and point.
+_POSES: weakref.WeakValueDictionary[tuple[int, bytes], PoseJacobian] = weakref.WeakValueDictionary()
+
+
+def pose_jacobian(robot: RobotModel, point: np.ndarray) -> PoseJacobian:
+    """The `PoseJacobian` every map on `robot` at `point` (flange frame, m) shares."""
+    point = np.asarray(point, float)
+    key = (id(robot), point.tobytes())
+    shared = _POSES.get(key)
+    if shared is None or shared.robot is not robot:  # (an id is reused once its robot is gone)
+        shared = _POSES[key] = PoseJacobian(robot, point)
+    return shared
+
+
 class JacobianMap:
     """Damped (J^T)^+ at the wrench point; `sigma_min` below `singular_sigma` is flagged."""
 
@@ -51,23 +103,17 @@ class JacobianMap:
 
     def __init__(self, robot: RobotModel, point: np.ndarray, singular_sigma: float = 0.03,
                  max_damping: float = 0.05) -> None:
-        self.model = robot.model.copy()
-        flange = self.model.frames[robot.flange_id]
-        frame = pin.Frame("wrench_point", flange.parentJoint, robot.flange_id,
-                          flange.placement * pin.SE3(np.eye(3), np.asarray(point, float)), pin.FrameType.OP_FRAME)
-        self.fid = self.model.addFrame(frame)
-        self.data = self.model.createData()
+        self.pose = pose_jacobian(robot, point)
         self.sigma0 = float(singular_sigma)
         self.lam_max = float(max_damping)
-        self.ref = pin.ReferenceFrame.LOCAL
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
-        return np.asarray(pin.computeFrameJacobian(self.model, self.data, np.asarray(q, float), self.fid, self.ref))
+        """The wrench point's LOCAL Jacobian (6 x n) at `q` (shared: not to be modified)."""
+        return self.pose.jacobian(q)
 
     def map(self, q: np.ndarray, tau_ext: np.ndarray) -> Mapped:
-        J = self.jacobian(q)
         # J^T = V S U^T, so the damped pseudo-inverse of J^T is U diag(s / (s^2 + lam^2)) V^T.
-        U, s, Vt = np.linalg.svd(J, full_matrices=False)
+        U, s, Vt = self.pose.svd(q)
         smin = float(s[-1])
         lam2 = 0.0
         if smin < self.sigma0:  # Nakamura-Hanafusa: damping fades in as the arm nears the singularity
@@ -112,7 +158,7 @@ class ContactMap(JacobianMap):
         if self._last is not None and self._last[0] == key:
             return self._last[1]
         J = self.jacobian(q)
-        smin = float(np.linalg.svd(J, compute_uv=False)[-1])
+        smin = float(self.pose.svd(q)[1][-1])  # (the SVD the detector's map of this pose shares)
         B = J.T @ self.A
         H = B.T @ self.W @ B + self.prior
         if smin < self.sigma0:  # as JacobianMap: damping fades in near the singularity (here on all of p)
