@@ -54,6 +54,10 @@ class Recorder:
     """Buffers step rows (flat dicts of scalars/strings) and flushes them as Parquet parts."""
 
     def __init__(self, run_dir: Path, chunk_rows: int = 250) -> None:
+        # The parts are built and written between control periods.  pyarrow's default pool (jemalloc) hands the
+        # memory back to the OS in the background afterwards, and the next few dozen periods ran slower (5 % on
+        # average against 2.5 % with the system allocator, peg runs alternated): the process keeps malloc's.
+        pa.set_memory_pool(pa.system_memory_pool())
         self.run_dir = Path(run_dir)
         self.log_dir = self.run_dir / "log"
         self.log_dir.mkdir(parents=True, exist_ok=True)
