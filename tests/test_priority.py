@@ -77,12 +77,15 @@ def test_the_process_threads_are_raised_alike_and_given_back(scheduler, monkeypa
     import threading
 
     policies: dict[int, int] = {}
+    nices: dict[int, int] = {}
 
     def setscheduler(pid: int, policy: int, param: os.sched_param) -> None:
         policies[pid] = policy
 
     monkeypatch.setattr(os, "sched_getscheduler", lambda pid: policies.get(pid, os.SCHED_OTHER))
     monkeypatch.setattr(os, "sched_setscheduler", setscheduler)
+    monkeypatch.setattr(os, "getpriority", lambda which, who: nices.get(who, 0))
+    monkeypatch.setattr(os, "setpriority", lambda which, who, nice: nices.__setitem__(who, nice))
     stop = threading.Event()
     reader = threading.Thread(target=stop.wait, name="reader", daemon=True)
     reader.start()
@@ -90,11 +93,12 @@ def test_the_process_threads_are_raised_alike_and_given_back(scheduler, monkeypa
     assert tid is not None
     try:
         with priority.raised_priority(other_threads=True) as raised:
-            assert raised == "realtime"
-            assert policies[0] == os.SCHED_FIFO and policies[tid] == os.SCHED_FIFO
-        assert policies[0] == os.SCHED_OTHER and policies[tid] == os.SCHED_OTHER
+            assert raised == "realtime" and policies[0] == os.SCHED_FIFO
+            # The reader at nice, not real-time: busy, it would hold a core against every other process.
+            assert policies.get(tid, os.SCHED_OTHER) == os.SCHED_OTHER and nices[tid] == priority.LOOP_NICE
+        assert policies[0] == os.SCHED_OTHER and nices[tid] == 0
         with priority.raised_priority():  # the loop's thread alone
-            assert policies[tid] == os.SCHED_OTHER
+            assert nices[tid] == 0
     finally:
         stop.set()
         reader.join()

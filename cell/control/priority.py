@@ -52,9 +52,10 @@ def raised_priority(nice: int = LOOP_NICE, rt_priority: int | None = LOOP_RT_PRI
     OS permits first; the old scheduling comes back after it.  Yields "realtime", "nice" or "normal".
 
     `other_threads`: the process's other Python threads (a driver's stream reader, started when the cell
-    connected) are raised alike for the block.  They take the interpreter lock in turns with the loop: one
-    left at normal priority, preempted by other processes while it holds the lock, would stall the loop for
-    as long as it waits (a priority inversion)."""
+    connected) run at `nice` for the block.  They take the interpreter lock in turns with the loop: one left at
+    normal priority, preempted by other processes while it holds the lock, would stall the loop for as long as
+    it waits (a priority inversion).  Not real-time: a thread that turned busy (a viewer's backlog) would then
+    hold a core against every other process."""
     global _warned
     raised, restore = _raise_thread(0, nice, rt_priority)
     restores = [restore]
@@ -63,7 +64,7 @@ def raised_priority(nice: int = LOOP_NICE, rt_priority: int | None = LOOP_RT_PRI
         for thread in threading.enumerate():
             if thread.ident != me and thread.native_id is not None:
                 with contextlib.suppress(OSError):  # a thread that ended meanwhile
-                    restores.append(_raise_thread(thread.native_id, nice, rt_priority)[1])
+                    restores.append(_raise_thread(thread.native_id, nice, None)[1])
     if raised == "normal" and not _warned:
         log.info("the control loop runs at normal priority (nice %d): raising it needs root, CAP_SYS_NICE "
                  "(e.g. setcap cap_sys_nice+ep on the venv's python) or an rtprio limit",
