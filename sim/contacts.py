@@ -39,17 +39,11 @@ class Penetration:
         n = data.ncon
         if n == 0:
             return
-        # (Python floats first: every physics step with a contact comes here, and most have one or two;
-        # a single contact's depth and normal z are read as items, without the arrays' views and lists.)
+        # (Python floats first: every physics step with a contact comes here, and most have one or two.)
         c = data.contact
-        if n == 1:
-            self.any = max(self.any, -c.dist.item(0))
-            if not abs(c.frame.item(2)) < 0.5:
-                return
-        else:
-            self.any = max(self.any, -min(c.dist.tolist()))
-            if not any([abs(z) < 0.5 for z in c.frame[:, 2].tolist()]):
-                return
+        self.any = max(self.any, -min(c.dist.tolist()))
+        if not any(abs(z) < 0.5 for z in c.frame[:, 2].tolist()):
+            return
         side = np.abs(c.frame[:n, 2]) < 0.5
         depth = -c.dist[:n]
         self.side = max(self.side, float(depth[side].max()))

@@ -359,7 +359,7 @@ class Plant:
         contacts = d.contact
         pad, body = self._pad_geom, self._pad_body
         v = None  # the pad's velocity: the same at each of its contacts, taken at the first that pushes
-        load: list[float] = []  # the pad's Cartesian load, summed over its contacts as _push would add them
+        load: list[float] = []  # the pad's Cartesian load, summed over its contacts as _push adds them
         for i, pair in enumerate(contacts.geom.tolist()):
             if pad not in pair:
                 continue
@@ -378,14 +378,11 @@ class Plant:
                 continue
             along = float(-self._pad_mu * fn * np.tanh(speed / v_eps))
             vx, vy, vz = vt.tolist()
-            fx, fy, fz = along * vx / speed, along * vy / speed, along * vz / speed
-            # The lever's moment r x F about the body's centre of mass, on Python floats (as in _push).
-            (px, py, pz), (cx, cy, cz) = contacts.pos[i].tolist(), self._xipos[body].tolist()
-            rx, ry, rz = px - cx, py - cy, pz - cz
+            push = self._lever_load(body, (along * vx / speed, along * vy / speed, along * vz / speed),
+                                    contacts.pos[i])
             if not load:
                 load = self._xfrc[body].tolist()
-            load = [s + f for s, f in zip(load, (fx, fy, fz, ry * fz - rz * fy, rz * fx - rx * fz, rx * fy - ry * fx),
-                                          strict=True)]
+            load = [s + f for s, f in zip(load, push, strict=True)]
         if load:
             self._xfrc[body] = load
 
@@ -397,15 +394,18 @@ class Plant:
 
     def _push(self, body: int, force: list[float], torque: np.ndarray | None, point: np.ndarray) -> None:
         """Add a world-frame force applied at `point` (plus a torque) to a body's Cartesian load."""
-        d = self.data
-        # The lever's moment r x F on Python floats: np.cross on 3-vectors costs more than the whole friction.
-        fx, fy, fz = force
-        (px, py, pz), (cx, cy, cz) = point.tolist(), d.xipos[body].tolist()
-        rx, ry, rz = px - cx, py - cy, pz - cz
-        moment = [ry * fz - rz * fy, rz * fx - rx * fz, rx * fy - ry * fx]
+        load = self._lever_load(body, force, point)
         if torque is not None:
-            moment = [t + mo for t, mo in zip(torque.tolist(), moment, strict=True)]
-        d.xfrc_applied[body] += [fx, fy, fz, *moment]
+            load[3:] = [t + mo for t, mo in zip(torque.tolist(), load[3:], strict=True)]
+        self._xfrc[body] += load
+
+    def _lever_load(self, body: int, force: collections.abc.Sequence[float], point: np.ndarray) -> list[float]:
+        """A world-frame force at `point` as the body's Cartesian load: the force and its lever's moment r x F about
+        the body's centre of mass, on Python floats (np.cross on 3-vectors costs more than the whole friction)."""
+        fx, fy, fz = force
+        (px, py, pz), (cx, cy, cz) = point.tolist(), self._xipos[body].tolist()
+        rx, ry, rz = px - cx, py - cy, pz - cz
+        return [fx, fy, fz, ry * fz - rz * fy, rz * fx - rx * fz, rx * fy - ry * fx]
 
     def _sample(self) -> ArmState:
         # In place on the noise's array: the same operations as tau + noise * std (a sum does not depend on

@@ -30,6 +30,12 @@ from drivers.configio import join, require
 SPEED_EDGES = np.array([0.0, 0.002, 0.01, 0.03, 0.1, 0.3, 1.0, np.inf])  # |q'| bins [rad/s] of the levels
 
 
+def speed_bin(speed: np.ndarray) -> np.ndarray:
+    """The level bin of each |q'| in `speed` [rad/s] (0 .. len(SPEED_EDGES) - 2)."""
+    # (Array methods rather than numpy's dispatching functions: one sample's arithmetic costs less than them.)
+    return np.minimum(np.maximum(SPEED_EDGES.searchsorted(speed, side="right") - 1, 0), len(SPEED_EDGES) - 2)
+
+
 @dataclass
 class Coverage:
     """Coverage grid and residual levels of a hybrid's learned joints (see the module docstring)."""
@@ -131,8 +137,7 @@ class Coverage:
     def sigma(self, dq: np.ndarray, w: np.ndarray) -> np.ndarray:
         """One-sigma torque uncertainty [N m] for speeds `dq` and trust `w` (see the module docstring): (n,) for
         one sample (the served path, every control period), (N, n) for N."""
-        # (Array methods rather than numpy's dispatching functions: one sample's arithmetic costs less than them.)
-        b = np.minimum(np.maximum(SPEED_EDGES.searchsorted(np.abs(dq), side="right") - 1, 0), len(SPEED_EDGES) - 2)
+        b = speed_bin(np.abs(dq))
         cols = np.arange(dq.shape[-1])
         return self._blended(self.sigma_hybrid[cols, b], self.sigma_physics[cols, b], w, dq)
 
@@ -142,7 +147,7 @@ class Coverage:
         if self.sigma_hybrid_arm is None or self.sigma_physics_arm is None:
             return None
         fastest = np.abs(dq).max(axis=-1)
-        b = np.minimum(np.maximum(SPEED_EDGES.searchsorted(fastest, side="right") - 1, 0), len(SPEED_EDGES) - 2)
+        b = speed_bin(fastest)
         # One bin a sample, every joint's level in it.
         return self._blended(self.sigma_hybrid_arm[:, b].T, self.sigma_physics_arm[:, b].T, w, dq)
 
@@ -193,7 +198,7 @@ def _levels(dq: np.ndarray, residual: np.ndarray, min_rows: int = 30) -> np.ndar
     S = len(SPEED_EDGES) - 1
     overall = np.sqrt(np.nanmean(residual**2, axis=0))
     out = np.tile(overall[:, None], (1, S))
-    b = np.clip(np.searchsorted(SPEED_EDGES, np.abs(dq), side="right") - 1, 0, S - 1)
+    b = speed_bin(np.abs(dq))
     for j in range(n):
         for k in range(S):
             m = b[:, j] == k
