@@ -31,11 +31,7 @@ def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[
         from cell.planning.constraints import toppra_terms
 
         model = load_model(Path(path), robot)
-        # The name keys the calibrations and the policy stored for it: a model trained again on other data is
-        # another model.
-        trained = (model.meta.training_data_sha256 or "")[:12]
-        name = f"{model.meta.kind} ({path}, data {trained})" if trained else f"{model.meta.kind} ({path})"
-        return model.predict, name, toppra_terms(model)
+        return model.predict, model_name(model, path), toppra_terms(model)
     log.warning("--model %s: planning with the nominal rigid-body model (P1, no rotor inertia or friction); "
                 "validation on the cell corrects the plan where it is wrong", NOMINAL)
 
@@ -43,6 +39,13 @@ def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[
         return np.array([robot.rnea(a, b, c) for a, b, c in zip(q, dq, ddq, strict=True)])
 
     return p1, "P1 (nominal URDF)", None
+
+
+def model_name(model: Any, path: str) -> str:
+    """A saved model's name as planning knows it.  The name keys the calibrations and the policy stored for it:
+    a model trained again on other data is another model."""
+    trained = (model.meta.training_data_sha256 or "")[:12]
+    return f"{model.meta.kind} ({path}, data {trained})" if trained else f"{model.meta.kind} ({path})"
 
 
 def prepared_model(cfg: CellConfig, kind: str) -> str:

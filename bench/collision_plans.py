@@ -87,17 +87,24 @@ def _stored(path: Path, key: str) -> Any:
         return None
 
 
-def bench_planners(robot: RobotModel, cfg: CellConfig, model: LearnedModel, artefacts: Path | None) -> BenchPlanners:
+def bench_planners(robot: RobotModel, cfg: CellConfig, model: LearnedModel, artefacts: Path | None,
+                   planning_model: str | None = None) -> BenchPlanners:
     """`bench planning`'s model, kinematic and PPO planners on this arm's model, with the settings that bench
-    stored under `artefacts` (its model trust, its calibrated kinematic accelerations, its PPO policy); where
-    one is missing: `plan`'s first-run scale, the configured acceleration guards, and a small PPO policy
-    trained here (FAST_PPO_UPDATES)."""
+    stored under `artefacts` (its model trust, its calibrated kinematic accelerations, its PPO policy; the first
+    and the last only when made for `planning_model`, the name of the model `plan` uses now); where one is
+    missing: `plan`'s first-run scale, the configured acceleration guards, and a small PPO policy trained here
+    (FAST_PPO_UPDATES)."""
     pcfg = load_plan_file(CONFIG_DIR / "plans.yaml").planner
     terms = toppra_terms(model)
     collisions = CollisionChecker.for_scene(robot, dataclasses.replace(cfg.scene, kind="free"))
     n = robot.n
     sources: dict[str, str] = {}
     trust = _stored(artefacts / "model_trust.json", "fraction") if artefacts else None
+    made_for = (_stored(artefacts / "model_trust.json", "key") or {}).get("model") if artefacts else None
+    if trust and made_for != planning_model:
+        log.warning("bench collision: the stored model trust was calibrated for %s, not %s: using the first-run "
+                    "scale (run `main.py bench planning` to calibrate it)", made_for, planning_model)
+        trust = None
     sources["model"] = f"model trust {trust:.3f} (bench planning)" if trust else f"first-run scale {TORQUE_SCALE}"
     model_planner = ToppraPlanner(robot, model.predict, pcfg, collisions, terms)
     acc = _stored(artefacts / "kinematic.json", "acceleration_limits") if artefacts else None
@@ -115,6 +122,10 @@ def bench_planners(robot: RobotModel, cfg: CellConfig, model: LearnedModel, arte
             policy, meta = load_policy(artefacts / "ppo", obs_dim(settings.env, n), settings.ppo.hidden)
             sources["ppo"] = (f"bench planning's policy ({meta.get('ppo', {}).get('updates')} updates, trained on "
                               f"{meta.get('model')})")
+            if meta.get("model") != planning_model:
+                log.warning("bench collision: the stored PPO policy was trained for %s, not %s: training a small "
+                            "one instead", meta.get("model"), planning_model)
+                policy = None
         except Exception as exc:  # an unreadable or other-shaped policy: train the small one instead
             log.warning("bench collision: %s; training a small PPO policy instead", exc)
     if policy is None:

@@ -4,6 +4,7 @@ a few periods, each reaction's behaviour, the run summary and recording, the con
 from __future__ import annotations
 
 import dataclasses
+import json
 from typing import Any
 
 import numpy as np
@@ -407,6 +408,26 @@ def test_contact_figures_say_whether_the_reaction_cut_the_force():
     bounce = [(x, 0.0 if abs(x - 0.015) < 1e-6 else 100.0) for x in t]
     b = contact_figures(bounce, 0.015, dt)
     assert b["at"] == 0.0 and b["reached"] == pytest.approx(100.0)
+
+
+def test_bench_collision_takes_the_planning_settings_made_for_the_model_plan_uses(vs, model, tmp_path, monkeypatch):
+    import bench.collision_plans as cp
+
+    (tmp_path / "model_trust.json").write_text(json.dumps({"key": {"model": "H1 (a, data 1)"}, "fraction": 0.77}))
+    (tmp_path / "ppo").mkdir()
+    (tmp_path / "ppo" / "policy.json").write_text("{}")
+    stored = {"model": "H1 (a, data 1)", "ppo": {"updates": 300}}
+    monkeypatch.setattr(cp, "load_policy", lambda *a: ("stored", stored))
+    monkeypatch.setattr(cp, "load_or_train", lambda *a, **k: ("small", {"training_s": 1.0}))
+    monkeypatch.setattr(cp, "PpoPlanner", lambda robot, fn, pcfg, policy, *a: policy)
+    same = cp.bench_planners(vs["robot"], vs["cfg"], model, tmp_path, "H1 (a, data 1)")
+    assert "0.770 (bench planning)" in same.sources["model"] and same.planners["model"][1][0] == 0.77
+    assert same.sources["ppo"].startswith("bench planning's policy") and same.planners["ppo"][0] == "stored"
+    # The model was trained again (other data): neither the trust nor the policy is its own.
+    other = cp.bench_planners(vs["robot"], vs["cfg"], model, tmp_path, "H1 (a, data 2)")
+    assert other.sources["model"] == f"first-run scale {cp.TORQUE_SCALE}"
+    assert other.planners["model"][1][0] == cp.TORQUE_SCALE
+    assert other.sources["ppo"].startswith("small policy trained here") and other.planners["ppo"][0] == "small"
 
 
 @pytest.mark.slow
