@@ -92,10 +92,10 @@ def plan_settings() -> PlannerConfig:
 
 
 def run_prepare(cfg: CellConfig, tool: str, kind: str, seed: int | None, samples: int, force: bool,
-                fast_moves: bool = False) -> dict[str, Any]:
+                fast_moves: bool = True) -> dict[str, Any]:
     """Collect, train the causal H1 and calibrate for `tool` on a `kind` cell (each step skipped when done);
     `fast_moves`: the collection adds moves timed as `plan` times them."""
-    from tasks.setup.calibrate import prepare
+    from tasks.setup.prepare import prepare
 
     robot = robot_for(cfg, tool)
     check_plant(cfg, kind, seed, tool)

@@ -19,7 +19,8 @@ from cell.sensing.artefacts import artefacts_missing
 from cell.sensing.virtual_sensor import build_virtual_source
 from drivers.errors import ConfigError, DataError
 from main import main
-from tasks.setup.calibrate import LoadApplier, OperatorLoads, calibrate, error_split, prepare
+from tasks.setup.calibrate import LoadApplier, OperatorLoads, calibrate, error_split
+from tasks.setup.prepare import prepare
 from tests.vsfixtures import artefacts
 
 

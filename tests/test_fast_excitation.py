@@ -263,7 +263,7 @@ def _write_collect_json(folder: Path, train: Any) -> Path:
     (["sweep", "fast"], False, False),  # not a plan's info
 ])
 def test_has_part_reads_the_train_plans_parts_from_collect_json(tmp_path, train, sweep, fast_part):
-    from tasks.setup.calibrate import _has_part
+    from tasks.setup.prepare import _has_part
 
     folder = _write_collect_json(tmp_path / "data", train)
     assert _has_part(folder, "sweep") is sweep
@@ -271,7 +271,7 @@ def test_has_part_reads_the_train_plans_parts_from_collect_json(tmp_path, train,
 
 
 def test_has_part_is_false_without_a_readable_collect_json(tmp_path):
-    from tasks.setup.calibrate import _has_part
+    from tasks.setup.prepare import _has_part
 
     assert _has_part(tmp_path / "missing", "fast") is False
     garbled = tmp_path / "garbled"
@@ -286,3 +286,24 @@ def test_has_part_is_false_without_a_readable_collect_json(tmp_path):
     not_a_dict.mkdir()
     (not_a_dict / "collect.json").write_text(json.dumps(["plans"]))
     assert _has_part(not_a_dict, "fast") is False
+
+
+def test_a_model_of_fast_moves_fitted_outside_the_current_regime_is_trained_again(tmp_path):
+    from types import SimpleNamespace
+
+    from tasks.lab.train import lab_settings
+    from tasks.setup.prepare import fitted_in_regime
+
+    cc = lab_settings()["coverage"]
+    assert cc.fit_max_speed > 0 and cc.fit_max_accel > 0  # the TM5-700 fits its residual in a regime
+    regime = {"fit_max_speed": cc.fit_max_speed, "fit_max_accel": cc.fit_max_accel}
+
+    def model(coverage: dict) -> Any:
+        return SimpleNamespace(meta=SimpleNamespace(extra={"coverage": coverage}))
+
+    fast = _write_collect_json(tmp_path / "fast", {"trajectories": 3, "fast": {"moves": 5}})
+    slow = _write_collect_json(tmp_path / "slow", {"trajectories": 3})
+    assert fitted_in_regime(model({"bins": 10, **regime}), fast)
+    assert not fitted_in_regime(model({"bins": 10}), fast)  # fitted on every row, fast moves included
+    assert not fitted_in_regime(model({**regime, "fit_max_speed": 2 * cc.fit_max_speed}), fast)
+    assert fitted_in_regime(model({"bins": 10}), slow)  # every row of a slow dataset is within the regime

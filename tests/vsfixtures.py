@@ -53,7 +53,7 @@ def _build(root: Path) -> None:
     from app.cells import calibration_cells
     from app.tasks_registry import robot_for
     from tasks.lab.collect import collect
-    from tasks.setup.calibrate import prepare
+    from tasks.setup.prepare import prepare
 
     ex = root / "ex.yaml"
     ex.write_text(yaml.safe_dump({"max_configs": 4, "speeds": [0.7, 1.0],

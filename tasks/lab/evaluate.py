@@ -17,7 +17,6 @@ from cell.config import CellConfig, resolve
 from cell.data.dataset import Trajectory, load_manifest, load_split, manifest_files
 from cell.data.samples import stack, subsample_segments
 from cell.model.dynamics.artefact import save_model
-from cell.model.dynamics.physics import identify_p2
 from cell.model.dynamics.rigid_body import P2Model
 from cell.model.specs import CELL_ROBOT, robot_by_name
 from drivers.configio import dumps_strict, read_yaml
@@ -36,6 +35,7 @@ from tasks.lab.train import (
     TrainOptions,
     default_net,
     fit_model,
+    identify_in_regime,
     lab_settings,
     load_samples,
 )
@@ -158,7 +158,7 @@ def evaluate(
     curve_out: dict[str, list[dict[str, float]]] = {"D": [], "H1": []}
     for size in tqdm([int(c) for c in (curve or []) if int(c) <= len(everything)], desc="learning curve", unit="size"):
         sub = subsample_segments(everything, size, seed)
-        p2 = identify_p2(robot_model, sub.q, sub.dq, sub.ddq, sub.tau, opts.identification, sha)
+        p2 = identify_in_regime(robot_model, sub, opts, sha)
         for kind in ("D", "H1"):
             m = fit_model(kind, robot_model, sub, opts, sha, p2=p2)
             rmse, _ = trajectory_errors(m, tests)
@@ -198,7 +198,7 @@ def evaluate(
         def fit_fold(trajs: list[Trajectory]) -> dict[str, Any]:
             s_all = stack(trajs, "zero_phase", man.filter)
             sub = subsample_segments(s_all, train_samples, seed)
-            p2 = identify_p2(robot_model, sub.q, sub.dq, sub.ddq, sub.tau, opts.identification, sha)
+            p2 = identify_in_regime(robot_model, sub, opts, sha)
             return {"P1": models["P1"], "P2": p2, "H1": fit_model("H1", robot_model, sub, opts, sha, p2=p2)}
 
         summary["leave_one_file_out"] = leave_one_file_out(manifest_files(dataset, "train"), fit_fold, robot_model.n,

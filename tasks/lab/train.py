@@ -16,7 +16,7 @@ from cell.data.outputs import check_out_dir
 from cell.data.samples import Samples, stack, subsample_segments
 from cell.model.dynamics.artefact import save_model
 from cell.model.dynamics.features import FeatureSpec
-from cell.model.dynamics.learned import LEARNERS, LearnedModel, XGBParams, fit_learned
+from cell.model.dynamics.learned import LEARNERS, LearnedModel, XGBParams, fit_learned, regime_rows
 from cell.model.dynamics.nets import NetParams
 from cell.model.dynamics.physics import P1Model, identify_p2
 from cell.model.dynamics.rigid_body import IdentificationConfig, P2Model, nominal_p2
@@ -161,6 +161,15 @@ def load_samples(dataset: Path, split: Literal["train", "test"], robot: RobotMod
     return s, files_sha256(manifest_files(dataset, split))
 
 
+def identify_in_regime(robot: RobotModel, s: Samples, opts: TrainOptions, data_sha: str = "") -> P2Model:
+    """P2 identified on the moves within the regime the learned residual is fitted in (robot.yaml `learning`,
+    `regime_rows`): the hybrid is the one these moves alone give, and the moves beyond set only its levels there
+    (identified on them too, the physics part shifts the slow regime the tasks run in: docs/collision.md)."""
+    rows = regime_rows(s, opts.coverage.fit_max_speed, opts.coverage.fit_max_accel)
+    sub = s if rows is None else s.take_rows(rows)
+    return identify_p2(robot, sub.q, sub.dq, sub.ddq, sub.tau, opts.identification, data_sha)
+
+
 def fit_model(kind: str, robot: RobotModel, s: Samples, opts: TrainOptions, data_sha: str = "",
               p2: P2Model | None = None, spec: FeatureSpec | None = None,
               report: Callable[[int, float], None] | None = None) -> P1Model | P2Model | LearnedModel:
@@ -172,7 +181,7 @@ def fit_model(kind: str, robot: RobotModel, s: Samples, opts: TrainOptions, data
     if kind == "H2" and opts.h2_rigid == "nominal":
         p2 = nominal_p2(robot)
     elif p2 is None and kind != "D":
-        p2 = identify_p2(robot, s.q, s.dq, s.ddq, s.tau, opts.identification, data_sha)
+        p2 = identify_in_regime(robot, s, opts, data_sha)
     if kind == "P2":
         assert p2 is not None
         return p2

@@ -20,12 +20,19 @@ from cell.config import CellConfig
 from cell.data.samples import Samples, subsample_segments
 from cell.model.dynamics.artefact import load_model, save_model
 from cell.model.dynamics.learned import LEARNERS, LearnedModel
-from cell.model.dynamics.physics import identify_p2
 from cell.model.dynamics.rigid_body import P2Model
 from cell.model.specs import CELL_ROBOT, robot_by_name
 from drivers.configio import dumps_strict
 from drivers.errors import CellError, ConfigError
-from tasks.lab.train import DEFAULT_XGB, TrainOptions, default_net, fit_model, lab_settings, load_samples
+from tasks.lab.train import (
+    DEFAULT_XGB,
+    TrainOptions,
+    default_net,
+    fit_model,
+    identify_in_regime,
+    lab_settings,
+    load_samples,
+)
 from tasks.lab.tune_space import Param, default_space, load_space
 
 log = logging.getLogger(__name__)
@@ -391,7 +398,7 @@ def tune(cfg: CellConfig, dataset: Path, out: Path, kind: str = "H1", learner: s
     if kind not in ("D", "H2") and not (out / "p2" / "model.json").exists():
         # every worker uses this one identified P2 (fitted on the kept rows only)
         f = obj.fit_rows
-        obj.p2 = identify_p2(obj.robot, f.q, f.dq, f.ddq, f.tau, obj.opts.identification, obj.sha)
+        obj.p2 = identify_in_regime(obj.robot, f, obj.opts, obj.sha)
         save_model(obj.p2, out / "p2")
     start = defaults(kind, learner, space)
     t_search = time.perf_counter()

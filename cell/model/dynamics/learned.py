@@ -204,6 +204,28 @@ def physics_part(kind: str, p2: P2Model | None, q: np.ndarray, dq: np.ndarray,
     return rigid + p2.losses(q, dq, ddq), rigid
 
 
+def regime_rows(s: Samples, max_speed: float, max_accel: float) -> np.ndarray | None:
+    """The rows a hybrid's learned residual is fitted on: those of the segments (moves) whose arm's fastest joint
+    stays within `max_speed` [rad/s] and `max_accel` [rad/s^2] throughout (0: no limit); None when that is
+    every row.  Whole segments, because the derivative filter lags a hard start: its first rows read slow while
+    the torque already carries the acceleration.
+
+    Fast, hard-braking moves leave residuals ten times those of the slow motion the tasks run in (inertia and
+    coupling errors the physics part still carries), and trees fitted on both lose the slow regime: they learn
+    the fast rows' load-dependent error and apply it to slow rows under the same gravity load.  So the hybrid is
+    fitted where the tasks run (`tasks.lab.train.identify_in_regime` identifies its physics part on the same
+    moves), and beyond, the fast moves give the thresholds the model's error, measured on them."""
+    inside = np.ones(len(s), bool)
+    if max_speed > 0:
+        inside &= np.abs(s.dq).max(axis=1) <= max_speed
+    if max_accel > 0:
+        inside &= np.abs(s.ddq).max(axis=1) <= max_accel
+    if inside.all():
+        return None
+    keep = ~np.isin(s.segment, np.unique(s.segment[~inside]))
+    return np.flatnonzero(keep)
+
+
 def fit_learned(
     kind: str,
     robot: RobotModel,
@@ -224,15 +246,23 @@ def fit_learned(
     if kind == "D" and spec.physics_inputs:
         spec = dataclasses.replace(spec, physics_inputs=False)  # D has no physics part to feed
     params = params or XGBParams()
+    cc = coverage or CoverageConfig()
+    cc.validate("coverage")
     physics, load = physics_part(kind, p2, samples.q, samples.dq, samples.ddq)
     target = samples.tau - physics
+    fit_rows = regime_rows(samples, cc.fit_max_speed, cc.fit_max_accel) if kind != "D" else None
+    fit = samples if fit_rows is None else samples.take_rows(fit_rows)
+    fit_target = target if fit_rows is None else target[fit_rows]
+    fit_load = load if fit_rows is None or load is None else load[fit_rows]
     forest: Forest | NetLearner
     if isinstance(params, NetParams):
-        forest = NetLearner(spec, robot.n, params).fit(samples, target, params, load, report)
+        forest = NetLearner(spec, robot.n, params).fit(fit, fit_target, params, fit_load, report)
         extra: dict[str, Any] = {"learner": params.learner, "net": params.to_dict(), "weights": forest.weights()}
     else:
-        forest = Forest(spec, robot.n).fit(samples, target, params, load, report)
+        forest = Forest(spec, robot.n).fit(fit, fit_target, params, fit_load, report)
         extra = {"xgboost": params.to_dict(), "trees": forest.trees()}
+    if fit_rows is not None:
+        extra["fit_rows"] = len(fit_rows)
     meta = robot_meta(
         robot, kind, features={**spec.to_dict(), "derivatives": samples.mode, "sample_period_s": samples.period_s},
         training_data_sha256=training_data_sha256, training_samples=len(samples),
@@ -242,15 +272,25 @@ def fit_learned(
              forest.fit_seconds)
     cov = None
     if kind != "D" and p2 is not None:
-        cc = coverage or CoverageConfig()
-        cc.validate("coverage")
         learned = forest.predict(samples.q, samples.dq, samples.ddq, samples.starts, load)
         outs = forest.outputs
         resid_h = target.copy()
         resid_h[:, outs] -= learned[:, outs]
-        _, val_rows = holdout_segments(samples, params.validation_fraction, params.seed)
+        _, val_rows = holdout_segments(fit, params.validation_fraction, params.seed)
+        own_rows = None
+        if fit_rows is not None:
+            # Levels from rows the forest never saw: its held-out segments, and for the levels by the arm's
+            # fastest joint also the rows of the other segments beyond the regime's speed (its cruise; a hard
+            # start's rows at lower speeds are the commanded-acceleration term's, as in a model fitted on all).
+            own_rows = fit_rows if val_rows is None else fit_rows[val_rows]
+            beyond = np.setdiff1d(np.arange(len(samples)), fit_rows)
+            if cc.fit_max_speed > 0:
+                beyond = beyond[np.abs(samples.dq[beyond]).max(axis=1) > cc.fit_max_speed]
+            val_rows = np.union1d(own_rows, beyond)
         cov = Coverage.fit(outs, samples.q, samples.dq, samples.ddq, resid_h, target, np.abs(p2.params.f_c),
-                           cc.bins, cc.min_count, cc.stick_speed, val_rows, blend=kind == "H1")
+                           cc.bins, cc.min_count, cc.stick_speed, val_rows, blend=kind == "H1", own_level_rows=own_rows)
         meta.extra["coverage"] = {"min_count": cc.min_count, "stick_speed": cc.stick_speed, "bins": cc.bins}
+        if fit_rows is not None:
+            meta.extra["coverage"].update(fit_max_speed=cc.fit_max_speed, fit_max_accel=cc.fit_max_accel)
     return LearnedModel(kind=kind, forest=forest, physics=p2 if kind != "D" else None, meta=meta, params=params,
                         coverage=cov)

@@ -70,8 +70,11 @@ class Coverage:
     @staticmethod
     def fit(joints: list[int], q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, residual_hybrid: np.ndarray,
             residual_physics: np.ndarray, static_band: np.ndarray, bins: int = 10, min_count: float = 10.0,
-            stick_speed: float = 0.0, level_rows: np.ndarray | None = None, blend: bool = True) -> Coverage:
-        """Occupancy from all rows; residual levels from `level_rows` (held-out rows) when given."""
+            stick_speed: float = 0.0, level_rows: np.ndarray | None = None, blend: bool = True,
+            own_level_rows: np.ndarray | None = None) -> Coverage:
+        """Occupancy from all rows; residual levels from `level_rows` (held-out rows) when given, the levels by
+        the joint's own speed from `own_level_rows` when given (the held-out rows of the regime the residual
+        was fitted in: beyond it the levels by the arm's fastest joint hold the fast rows' errors)."""
         js = np.asarray(joints, np.int64)
         x = np.stack([q[:, js], dq[:, js], ddq[:, js]], axis=-1)  # (N, m, 3)
         lo = np.percentile(x, 0.5, axis=0)
@@ -85,8 +88,9 @@ class Coverage:
         rows = np.arange(len(q)) if level_rows is None or len(level_rows) == 0 else np.asarray(level_rows)
         cov = Coverage(js, lo, width, counts, float(min_count), float(stick_speed), np.zeros(0), np.zeros(0),
                        np.asarray(static_band, float), blend)
-        cov.sigma_hybrid = _levels(dq[rows], residual_hybrid[rows])
-        cov.sigma_physics = _levels(dq[rows], residual_physics[rows])
+        own = rows if own_level_rows is None or len(own_level_rows) == 0 else np.asarray(own_level_rows)
+        cov.sigma_hybrid = _levels(dq[own], residual_hybrid[own])
+        cov.sigma_physics = _levels(dq[own], residual_physics[own])
         arm = np.repeat(np.abs(dq[rows]).max(axis=1, keepdims=True), dq.shape[1], axis=1)
         cov.sigma_hybrid_arm = _levels(arm, residual_hybrid[rows])
         cov.sigma_physics_arm = _levels(arm, residual_physics[rows])
@@ -214,8 +218,16 @@ class CoverageConfig:
     min_count: float = 0.0  # training samples a grid cell needs for full trust (0: coverage not used)
     stick_speed: float = 0.0  # rad/s; the learned residual fades out below it (0: never)
     bins: int = 10  # grid cells per axis of (q_j, q'_j, q''_j)
+    # The motion regime a hybrid is fitted in: the moves whose fastest joint stays within fit_max_speed [rad/s]
+    # and fit_max_accel [rad/s^2] (0: no limit).  The moves beyond set only its residual levels there
+    # (learned.py `regime_rows`).
+    fit_max_speed: float = 0.0
+    fit_max_accel: float = 0.0
 
     def validate(self, where: str) -> None:
+        require(self.fit_max_speed >= 0, join(where, "fit_max_speed"), f"must be >= 0 rad/s, got {self.fit_max_speed}")
+        require(self.fit_max_accel >= 0, join(where, "fit_max_accel"),
+                f"must be >= 0 rad/s^2, got {self.fit_max_accel}")
         require(0 <= self.min_count <= 1e6, join(where, "min_count"), f"must lie in [0, 1e6], got {self.min_count}")
         require(0 <= self.stick_speed <= 1.0, join(where, "stick_speed"),
                 f"must lie in [0, 1] rad/s, got {self.stick_speed}")
