@@ -61,9 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--cell", choices=CALIBRATION_KINDS, default="sim", help="the cell to collect and calibrate on")
     pr.add_argument("--samples", type=COUNT, default=PREPARE_SAMPLES, help="training samples to collect (8 ms each)")
     pr.add_argument("--force", action="store_true", help="rebuild every artefact even if present and matching")
-    pr.add_argument("--fast-moves", action=argparse.BooleanOptionalAction, default=True,
-                    help="moves at `plan`'s speeds in the collection, so the collision thresholds know them "
-                         "(docs/collision.md)")
+    pr.add_argument("--fast-moves", action="store_true",
+                    help="add moves at `plan`'s speeds to the collection (docs/collision.md: what they change)")
     add_plant_option(pr)
     common(pr)
     pr.set_defaults(func=cmd_prepare)

@@ -42,10 +42,12 @@ def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[
 
 
 def model_name(model: Any, path: str) -> str:
-    """A saved model's name as planning knows it.  The name keys the calibrations and the policy stored for it:
-    a model trained again on other data is another model."""
-    trained = (model.meta.training_data_sha256 or "")[:12]
-    return f"{model.meta.kind} ({path}, data {trained})" if trained else f"{model.meta.kind} ({path})"
+    """A saved model's name as planning knows it.  The name keys the calibrations and the policy stored for it,
+    so it carries the saved files' content hash: a model trained again, on other data or with other settings, is
+    another model."""
+    from cell.sensing.virtual_sensor import model_identity
+
+    return f"{model.meta.kind} ({path}, model {model_identity(Path(path))[:12]})"
 
 
 def prepared_model(cfg: CellConfig, kind: str) -> str:

@@ -92,7 +92,7 @@ def plan_settings() -> PlannerConfig:
 
 
 def run_prepare(cfg: CellConfig, tool: str, kind: str, seed: int | None, samples: int, force: bool,
-                fast_moves: bool = True) -> dict[str, Any]:
+                fast_moves: bool = False) -> dict[str, Any]:
     """Collect, train the causal H1 and calibrate for `tool` on a `kind` cell (each step skipped when done);
     `fast_moves`: the collection adds moves timed as `plan` times them."""
     from tasks.setup.prepare import prepare

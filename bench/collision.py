@@ -386,6 +386,7 @@ def summarise(trials: list[dict[str, Any]], free: dict[str, Any], seed: int, wal
         "free_motion_max_ratio": free["max_ratio"],
         "free_motion_max_ratio_time_optimal": free.get("max_ratio_time_optimal"),
         "free_motion_max_ratio_by_kind": free.get("max_ratio_by_kind", {}),
+        "free_motion_max_ratio_at": free.get("max_ratio_at", {}),
         "free_motion_cut_short": free.get("cut_short", []),
         "per_impact": trials,
         "wall_time_s": round(wall_s, 1),

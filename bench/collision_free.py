@@ -43,6 +43,7 @@ class FreeMotion:
 
     alarms: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     max_ratio: dict[str, float] = dataclasses.field(default_factory=dict)
+    max_at: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)  # where each kind's largest was
     played_s: float = 0.0
     cut_short: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     chunk: int = 0
@@ -51,7 +52,11 @@ class FreeMotion:
             reason: str) -> None:
         for d in guard_stats.get("detections", []):
             self.alarms.append({"chunk": self.chunk, "motion": kind, "payload_error_kg": round(error, 3), **d})
-        self.max_ratio[kind] = max(self.max_ratio.get(kind, 0.0), float(guard_stats.get("max_free_ratio", 0.0)))
+        ratio = float(guard_stats.get("max_free_ratio", 0.0))
+        if ratio >= self.max_ratio.get(kind, 0.0):
+            self.max_ratio[kind] = ratio
+            self.max_at[kind] = {"chunk": self.chunk, "payload_error_kg": round(error, 3),
+                                 **guard_stats.get("max_free_at", {})}
         self.played_s += seconds
         if outcome != "done":
             log.warning("free motion chunk %d (%s) ended %s: %s", self.chunk, kind, outcome, reason)
@@ -62,7 +67,8 @@ class FreeMotion:
         by_kind = {k: round(v, 3) for k, v in self.max_ratio.items()}
         return {"seconds": round(self.played_s, 1), "alarms": self.alarms,
                 "max_ratio": max(by_kind.values(), default=0.0), "max_ratio_by_kind": by_kind,
-                "max_ratio_time_optimal": by_kind.get("time_optimal"), "cut_short": self.cut_short}
+                "max_ratio_at": self.max_at, "max_ratio_time_optimal": by_kind.get("time_optimal"),
+                "cut_short": self.cut_short}
 
 
 def _play(cfg: CellConfig, robot: RobotModel, model: LearnedModel, q: np.ndarray, seed: int, error: float,

@@ -253,6 +253,10 @@ def test_free_motion_is_quiet_and_a_push_is_caught_within_three_periods(vs, mode
     assert quiet.outcome == "done"
     assert quiet.collision["detections"] == [], quiet.collision
     assert quiet.collision["max_free_ratio"] < 0.8
+    at = quiet.collision["max_free_at"]  # where the margin was thinnest: that joint's own residual over threshold
+    assert 1 <= at["joint"] <= 6 and at["state"] == "move" and 0 < at["t"] <= 250 * vs["cfg"].loop.period_s
+    assert abs(at["residual_nm"]) / at["threshold_nm"] == pytest.approx(quiet.collision["max_free_ratio"], abs=2e-3)
+    assert at["arm_speed"] >= at["joint_speed"] >= 0
 
     result, task, _ = _run(vs, model, _guard(vs, model), speed=0.08, push_at=60, force=(0.0, -60.0, 0.0))
     assert result.outcome == "collision", result.reason
@@ -408,6 +412,24 @@ def test_contact_figures_say_whether_the_reaction_cut_the_force():
     bounce = [(x, 0.0 if abs(x - 0.015) < 1e-6 else 100.0) for x in t]
     b = contact_figures(bounce, 0.015, dt)
     assert b["at"] == 0.0 and b["reached"] == pytest.approx(100.0)
+
+
+def test_a_model_trained_again_on_the_same_data_is_another_model_to_planning(vs, tmp_path):
+    import shutil
+
+    from app.commands_plan import model_name
+    from cell.model.dynamics.artefact import load_model
+
+    folder = tmp_path / "wipe"
+    shutil.copytree(vs["cfg"].virtual_sensor.path("model", "wipe"), folder)
+    model = load_model(folder, vs["robot"])
+    before = model_name(model, str(folder))
+    assert before.startswith(f"H1 ({folder}, model ")
+    assert model_name(model, str(folder)) == before  # the same files: the same name
+    doc = json.loads((folder / "model.json").read_text())
+    doc["coverage"]["sigma_hybrid"][0][0] += 0.1  # trained again with other settings: its levels moved
+    (folder / "model.json").write_text(json.dumps(doc))
+    assert model.meta.training_data_sha256 and model_name(model, str(folder)) != before
 
 
 def test_bench_collision_takes_the_planning_settings_made_for_the_model_plan_uses(vs, model, tmp_path, monkeypatch):

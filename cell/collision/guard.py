@@ -127,6 +127,7 @@ class GuardSummary:
     detections: list[dict[str, Any]] = field(default_factory=list)
     reactions: list[str] = field(default_factory=list)
     max_free_ratio: float = 0.0  # largest residual / threshold seen in free states (1 = detection)
+    max_free_at: dict[str, Any] = field(default_factory=dict)  # where it was: time, joint, speeds, residual
     max_fast_force_n: float = 0.0
 
 
@@ -176,8 +177,15 @@ class ContactGuard:
             hit = over.size > 0
             ratios = d.ratios()
             ratio = float(ratios.max())
-            if not d.held:
-                self.stats.max_free_ratio = max(self.stats.max_free_ratio, ratio)
+            if not d.held and ratio > self.stats.max_free_ratio:
+                self.stats.max_free_ratio = ratio
+                j = int(ratios.argmax())
+                dq = np.abs(np.asarray(state.dq, float))
+                # Where the margin is thinnest says which term of the threshold to look at (docs/collision.md).
+                self.stats.max_free_at = {"t": round(t, 3), "state": task_state, "joint": j + 1,
+                                          "joint_speed": round(float(dq[j]), 3), "arm_speed": round(float(dq.max()), 3),
+                                          "residual_nm": round(float(d.residual[j]), 2),
+                                          "threshold_nm": round(float(d.threshold[j]), 2)}
             joints = [int(j) + 1 for j in over]
             mode = "free"
         if not hit:
@@ -236,7 +244,7 @@ class ContactGuard:
         s = self.stats
         d = self.detector
         out: dict[str, Any] = {"enabled": True, "detections": s.detections, "reactions": s.reactions,
-                               "max_free_ratio": round(s.max_free_ratio, 3),
+                               "max_free_ratio": round(s.max_free_ratio, 3), "max_free_at": s.max_free_at,
                                "max_fast_force_n": round(s.max_fast_force_n, 1)}
         if d.over_wire:
             # How often the wire's timing held the checks (a late sample) or gave no new sample at all.
