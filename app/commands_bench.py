@@ -267,15 +267,10 @@ def _bench_collision(args: argparse.Namespace) -> dict[str, Any]:
     model = load_observer_model(cfg.virtual_sensor.path("model", "peg"), robot, cfg.loop.period_s)
     planners = None
     if args.free_s > 0:
-        # `bench planning` calibrates its settings on the model `plan` uses (the wipe tool's); they count here
-        # only when made for the one prepared now.
-        from app.commands_plan import model_name
-        from cell.model.dynamics.artefact import load_model
+        # `bench planning`'s stored settings count here only when made for the model `plan` uses now.
+        from app.commands_plan import prepared_model_name
 
-        wipe = cfg.virtual_sensor.path("model", "wipe")
-        planning = model_name(load_model(wipe, robot_for(cfg, "wipe")), str(wipe)) if (wipe / "model.json").exists() \
-            else None
-        planners = bench_planners(robot, cfg, model, ARTEFACTS, planning)
+        planners = bench_planners(robot, cfg, model, ARTEFACTS, prepared_model_name(cfg, robot_for(cfg, "wipe")))
     return bench_collision(cfg, robot, model, impacts=args.impacts, seed=args.seed if args.seed is not None else 0,
                            free_s=args.free_s, reaction=args.reaction, planners=planners,
                            task_run=_collision_task_run(cfg) if args.free_s > 0 else None)

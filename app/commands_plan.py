@@ -50,6 +50,17 @@ def model_name(model: Any, path: str) -> str:
     return f"{model.meta.kind} ({path}, model {model_identity(Path(path))[:12]})"
 
 
+def prepared_model_name(cfg: CellConfig, robot: RobotModel) -> str | None:
+    """The name of the model `plan` uses on this cell (the wipe tool's prepared one), None while none is prepared:
+    what `bench planning`'s stored settings must have been made for."""
+    from cell.model.dynamics.artefact import load_model
+
+    prepared = cfg.virtual_sensor.path("model", "wipe")
+    if not (prepared / "model.json").exists():
+        return None
+    return model_name(load_model(prepared, robot), str(prepared))
+
+
 def prepared_model(cfg: CellConfig, kind: str) -> str:
     """The wipe tool's prepared hybrid model: the plan's torque limits are the arm's own (rotor inertia,
     friction).  Missing on a simulated cell it is prepared now; on the real arm the command says how."""

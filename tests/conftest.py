@@ -176,6 +176,14 @@ def robot(cfg: CellConfig) -> RobotModel:
     return load_robot(resolve(cfg.robot.urdf), cfg.robot.tcp_wipe, cfg.robot.tool_mass, cfg.robot.tool_com)
 
 
+@pytest.fixture(scope="module")
+def robot_module() -> RobotModel:
+    """The cell's robot, once per module (for module-scoped fixtures that fit models on it)."""
+    from cell.model.specs import cell_robot
+
+    return cell_robot(load_config())
+
+
 @pytest.fixture
 def home(cfg: CellConfig) -> np.ndarray:
     return np.asarray(cfg.robot.home, float)

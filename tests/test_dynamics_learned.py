@@ -31,15 +31,6 @@ from drivers.errors import DataError
 SMALL = XGBParams(n_estimators=60, max_depth=5, learning_rate=0.2, nthread=2, early_stopping_rounds=10)
 
 
-@pytest.fixture(scope="module")
-def robot_module():
-    from cell.config import load_config
-    from cell.model.specs import cell_robot
-
-    cfg = load_config()
-    return cell_robot(cfg)
-
-
 def motion(samples: int, seed: int, trajs: int = 4, scale: float = 1.0) -> Samples:
     """Sum-of-sines motion (amplitudes x `scale`) cut into `trajs` trajectories of 10 segments each."""
     rng = np.random.default_rng(seed)

@@ -47,15 +47,6 @@ def true_model(robot_module):
     return model
 
 
-@pytest.fixture(scope="module")
-def robot_module():
-    from cell.config import load_config
-    from cell.model.specs import cell_robot
-
-    cfg = load_config()
-    return cell_robot(cfg)
-
-
 def true_torque(model: pin.Model, q, dq, ddq) -> np.ndarray:
     data = model.createData()
     rb = np.array([pin.rnea(model, data, q[k], dq[k], ddq[k]) for k in range(len(q))])

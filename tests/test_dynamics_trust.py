@@ -164,15 +164,6 @@ def test_coverage_dict_round_trip_and_inconsistent_shapes():
 
 # ------------------------------------------------------------------------------------------ fitted hybrids
 @pytest.fixture(scope="module")
-def robot_module():
-    from cell.config import load_config
-    from cell.model.specs import cell_robot
-
-    cfg = load_config()
-    return cell_robot(cfg)
-
-
-@pytest.fixture(scope="module")
 def fitted(robot_module):
     return fit_h1(robot_module, SMALL, COVERAGE)
 

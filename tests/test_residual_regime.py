@@ -42,14 +42,6 @@ def data(robot_module):
     return slow, fast, both, p2
 
 
-@pytest.fixture(scope="module")
-def robot_module():
-    from cell.config import load_config
-    from cell.model.specs import cell_robot
-
-    return cell_robot(load_config())
-
-
 def test_whole_segments_beyond_the_regime_are_left_out():
     s = motion(400, 2, trajs=1, scale=0.2)
     assert np.abs(s.dq).max() < 1.0 and np.abs(s.ddq).max() < 6.0

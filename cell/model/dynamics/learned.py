@@ -250,6 +250,7 @@ def fit_learned(
     cc.validate("coverage")
     physics, load = physics_part(kind, p2, samples.q, samples.dq, samples.ddq)
     target = samples.tau - physics
+    # (D has no physics part to take the moves beyond the regime: it learns the whole torque on every move.)
     fit_rows = regime_rows(samples, cc.fit_max_speed, cc.fit_max_accel) if kind != "D" else None
     fit = samples if fit_rows is None else samples.take_rows(fit_rows)
     fit_target = target if fit_rows is None else target[fit_rows]
