@@ -237,9 +237,10 @@ def fit_learned(
     coverage: CoverageConfig | None = None,
     report: Callable[[int, float], None] | None = None,
 ) -> LearnedModel:
-    """Fit D (torque) or a hybrid (the residual left by its physics part) on `samples`; a hybrid also
-    gets its coverage and residual levels (cell/model/dynamics/uncertainty.py), measured on the segments the
-    forest held out for early stopping (all samples when it held none)."""
+    """Fit D (torque) or a hybrid (the residual left by its physics part) on `samples`, a hybrid's forest on the
+    moves within `coverage`'s regime (`regime_rows`); a hybrid also gets its coverage and residual levels
+    (cell/model/dynamics/uncertainty.py), measured on the segments the forest held out for early stopping (all
+    samples when it held none) and, by the arm's fastest joint, on the moves beyond the regime past its speed."""
     if kind not in PHYSICS_PART:
         raise ValueError(f"unknown learned model {kind!r} (D, H1, H2, H3)")
     spec = spec or FeatureSpec()
