@@ -256,7 +256,7 @@ def _bench_faults(args: argparse.Namespace) -> dict[str, Any]:
 def _bench_collision(args: argparse.Namespace) -> dict[str, Any]:
     """Scripted impacts and free motion on the simulated cell, the peg tool's hybrid model detecting; the free
     motion includes the plans `bench planning` makes and the tasks' own runs."""
-    from app.commands_planning import ARTEFACTS
+    from app.planning_model import ARTEFACTS, prepared_model_name
     from bench.collision import bench_collision
     from bench.collision_plans import bench_planners
     from cell.sensing.virtual_sensor import load_observer_model
@@ -268,8 +268,6 @@ def _bench_collision(args: argparse.Namespace) -> dict[str, Any]:
     planners = None
     if args.free_s > 0:
         # `bench planning`'s stored settings count here only when made for the model `plan` uses now.
-        from app.commands_plan import prepared_model_name
-
         planners = bench_planners(robot, cfg, model, ARTEFACTS, prepared_model_name(cfg, robot_for(cfg, "wipe")))
     return bench_collision(cfg, robot, model, impacts=args.impacts, seed=args.seed if args.seed is not None else 0,
                            free_s=args.free_s, reaction=args.reaction, planners=planners,

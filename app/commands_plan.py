@@ -11,70 +11,17 @@ from typing import Any
 
 import numpy as np
 
-from app.cells import cell_kind, is_simulated, open_cell
+from app import planning_model
+from app.cells import cell_kind, open_cell
 from app.common import emit, save_bench_summary
-from app.sensing import PREPARE_SAMPLES, run_prepare, with_guard
+from app.planning_model import NOMINAL, prepared_model, torque_model
+from app.sensing import with_guard
 from app.tasks_registry import robot_for
 from cell.config import CellConfig, load_config
 from cell.model.robot import RobotModel
 from drivers.errors import ConfigError
 
 log = logging.getLogger("tmcell")
-NOMINAL = "nominal"  # --model nominal: the URDF's rigid body (P1), no prepared model needed
-
-
-def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[Any, str, Any]:
-    """The torque predictor the planner uses, its name and the part toppra takes as its constraint:
-    a saved model artefact, or the nominal rigid body (P1)."""
-    if path:
-        from cell.model.dynamics.artefact import load_model  # the model lab's artefacts
-        from cell.planning.constraints import toppra_terms
-
-        model = load_model(Path(path), robot)
-        return model.predict, model_name(model, path), toppra_terms(model)
-    log.warning("--model %s: planning with the nominal rigid-body model (P1, no rotor inertia or friction); "
-                "validation on the cell corrects the plan where it is wrong", NOMINAL)
-
-    def p1(q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
-        return np.array([robot.rnea(a, b, c) for a, b, c in zip(q, dq, ddq, strict=True)])
-
-    return p1, "P1 (nominal URDF)", None
-
-
-def model_name(model: Any, path: str) -> str:
-    """A saved model's name as planning knows it.  The name keys the calibrations and the policy stored for it,
-    so it carries the saved files' content hash: a model trained again, on other data or with other settings, is
-    another model."""
-    from cell.sensing.virtual_sensor import model_identity
-
-    return f"{model.meta.kind} ({path}, model {model_identity(Path(path))[:12]})"
-
-
-def prepared_model_name(cfg: CellConfig, robot: RobotModel) -> str | None:
-    """The name of the model `plan` uses on this cell (the wipe tool's prepared one), None while none is prepared:
-    what `bench planning`'s stored settings must have been made for."""
-    from cell.model.dynamics.artefact import load_model
-
-    prepared = cfg.virtual_sensor.path("model", "wipe")
-    if not (prepared / "model.json").exists():
-        return None
-    return model_name(load_model(prepared, robot), str(prepared))
-
-
-def prepared_model(cfg: CellConfig, kind: str) -> str:
-    """The wipe tool's prepared hybrid model: the plan's torque limits are the arm's own (rotor inertia,
-    friction).  Missing on a simulated cell it is prepared now; on the real arm the command says how."""
-    prepared = cfg.virtual_sensor.path("model", "wipe")
-    if not (prepared / "model.json").exists():
-        if not is_simulated(kind):
-            raise ConfigError(f"plan: no prepared model at {prepared}: make it on this arm with `main.py prepare "
-                              f"--tool wipe --cell {kind}`, or plan on the nominal rigid body with --model {NOMINAL}")
-        log.warning("plan: no prepared model at %s; preparing it now on the simulated cell (`main.py prepare "
-                    "--tool wipe`, once, a couple of minutes; --model %s plans on the nominal rigid body instead)",
-                    prepared, NOMINAL)
-        run_prepare(cfg, "wipe", "sim", None, PREPARE_SAMPLES, force=False)
-    log.info("planning with the prepared hybrid model %s (--model to choose another)", prepared)
-    return str(prepared)
 
 
 def kinematic_baseline(cfg: CellConfig, robot: RobotModel, predictor: Any, pcfg: Any, collisions: Any, kind: str,
@@ -84,20 +31,16 @@ def kinematic_baseline(cfg: CellConfig, robot: RobotModel, predictor: Any, pcfg:
     made for this arm and these planner settings there is no honest kinematic figure to give."""
 
     from app.cells import cell_identity
-    from app.commands_planning import ARTEFACTS
-    from cell.planning.baselines import KinematicPlanner
+    from cell.planning.baselines import KinematicPlanner, kinematic_calibration_key
 
-    path = ARTEFACTS / "kinematic.json"
+    path = planning_model.ARTEFACTS / "kinematic.json"
     if not path.exists():
         return None, f"not calibrated (no {path}; `main.py bench planning` calibrates it on a simulated cell)"
     try:
         stored = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
         return None, f"not calibrated ({path} unreadable: {exc})"
-    # The key bench/planning.py's kinematic_limits stores the calibration under, made here the same way.
-    key = {"arm": {k: v for k, v in cell_identity(cfg, kind, seed).items() if k != "seed"},
-           "limit_fraction": 1.0 - pcfg.torque_margin, "velocity_fraction": pcfg.velocity_fraction,
-           "guards": list(pcfg.acceleration_limits), "smoothing_s": pcfg.smoothing_s}
+    key = kinematic_calibration_key({k: v for k, v in cell_identity(cfg, kind, seed).items() if k != "seed"}, pcfg)
     if not isinstance(stored, dict) or stored.get("key") != json.loads(json.dumps(key)):
         return None, f"not calibrated for this arm or these planner settings ({path} was made for others)"
     acc = np.minimum(stored["acceleration_limits"], pcfg.acceleration_limits).tolist()

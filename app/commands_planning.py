@@ -5,24 +5,21 @@ from __future__ import annotations
 import argparse
 import logging
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from app.cells import cell_identity, open_cell
 from app.common import load_cell_config
+from app.planning_model import ARTEFACTS, NOMINAL, PLANS, prepared_model, torque_model
 from app.sensing import with_guard
 from app.tasks_registry import robot_for
 from cell.cliargs import int_in
-from cell.config import CONFIG_DIR
 from drivers.errors import ConfigError
 
 log = logging.getLogger("tmcell")
 PLANNING_PATHS = 20
 PPO_UPDATES = 300  # PPO rollouts of 32 paths: about a minute on one core (docs/planning.md)
-PLANS = CONFIG_DIR / "plans.yaml"  # the named paths and the planner settings `main.py plan` uses
-ARTEFACTS = Path("artifacts/planning")
 
 
 def add_planning_options(b: argparse.ArgumentParser) -> None:
@@ -50,7 +47,6 @@ def planning_tags(args: argparse.Namespace) -> list[str]:
 def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
     """Assemble the bench: the prepared hybrid model, config/plans.yaml's planner settings and named paths,
     and the simulated cell (guarded unless --no-guard) to execute each plan on."""
-    from app.commands_plan import NOMINAL, prepared_model, torque_model
     from bench.planning import PlanningSetup, bench_planning
     from cell.collision.geometry import CollisionChecker
     from cell.planning.planner import TimedTrajectory

@@ -417,7 +417,7 @@ def test_contact_figures_say_whether_the_reaction_cut_the_force():
 def test_a_model_trained_again_on_the_same_data_is_another_model_to_planning(vs, tmp_path):
     import shutil
 
-    from app.commands_plan import model_name
+    from app.planning_model import model_name
     from cell.model.dynamics.artefact import load_model
 
     folder = tmp_path / "wipe"

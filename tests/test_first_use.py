@@ -47,7 +47,7 @@ def test_plan_without_a_prepared_model_on_the_simulated_cell_prepares_it(monkeyp
         calls.append((tool, kind))
         raise ConfigError("stop here: the test only checks that prepare is asked for")
 
-    monkeypatch.setattr("app.commands_plan.run_prepare", fake_prepare)
+    monkeypatch.setattr("app.planning_model.run_prepare", fake_prepare)
     assert main(["plan", "--cell", "sim"]) == 2
     assert calls == [("wipe", "sim")]
     assert "stop here" in capsys.readouterr().err
@@ -63,6 +63,6 @@ def test_plan_on_the_nominal_model_needs_nothing_prepared(monkeypatch, cell):
         return {"plans": 0, "paths": {}, "mean_improvement_vs_uniform_pct": None}
 
     monkeypatch.setattr("tasks.setup.plan.run_plans", fake_run_plans)
-    monkeypatch.setattr("app.commands_plan.run_prepare", lambda *a, **k: pytest.fail("prepare was asked for"))
+    monkeypatch.setattr("app.planning_model.run_prepare", lambda *a, **k: pytest.fail("prepare was asked for"))
     assert main(["-q", "plan", "--model", "nominal", "--cell", cell]) == 0
     assert seen["model"].startswith("P1")

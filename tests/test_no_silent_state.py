@@ -110,7 +110,7 @@ def test_bench_model_holds_out_trajectories_when_the_dataset_has_no_test_split(t
 
 # ------------------------------------------------------------------------------ plan against kinematic
 def test_plan_says_not_calibrated_without_a_kinematic_calibration(tmp_path, monkeypatch):
-    import app.commands_planning as planning
+    import app.planning_model as planning
     from app.commands_plan import add_kinematic_comparison, kinematic_baseline
     from cell.config import load_config
     from cell.model.specs import cell_robot
