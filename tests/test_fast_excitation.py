@@ -288,22 +288,26 @@ def test_has_part_is_false_without_a_readable_collect_json(tmp_path):
     assert _has_part(not_a_dict, "fast") is False
 
 
-def test_a_model_of_fast_moves_fitted_outside_the_current_regime_is_trained_again(tmp_path):
+def test_a_model_fitted_with_other_robot_settings_is_trained_again():
+    """`train` records the robot.yaml settings it fitted with; `prepare` keeps a model only when they are today's
+    (a regime moved, an identification changed)."""
+    import dataclasses
     from types import SimpleNamespace
 
-    from tasks.lab.train import lab_settings
-    from tasks.setup.prepare import fitted_in_regime
+    from tasks.lab.train import fit_settings, lab_settings
+    from tasks.setup.prepare import fitted_with_current_settings
 
-    cc = lab_settings()["coverage"]
+    settings = lab_settings()
+    cc = settings["coverage"]
     assert cc.fit_max_speed > 0 and cc.fit_max_accel > 0  # the TM5-700 fits its residual in a regime
-    regime = {"fit_max_speed": cc.fit_max_speed, "fit_max_accel": cc.fit_max_accel}
 
-    def model(coverage: dict) -> Any:
-        return SimpleNamespace(meta=SimpleNamespace(extra={"coverage": coverage}))
+    def model(recorded: Any) -> Any:
+        extra = {} if recorded is None else {"fit_settings": recorded}
+        return SimpleNamespace(meta=SimpleNamespace(extra=extra))
 
-    fast = _write_collect_json(tmp_path / "fast", {"trajectories": 3, "fast": {"moves": 5}})
-    slow = _write_collect_json(tmp_path / "slow", {"trajectories": 3})
-    assert fitted_in_regime(model({"bins": 10, **regime}), fast)
-    assert not fitted_in_regime(model({"bins": 10}), fast)  # fitted on every row, fast moves included
-    assert not fitted_in_regime(model({**regime, "fit_max_speed": 2 * cc.fit_max_speed}), fast)
-    assert fitted_in_regime(model({"bins": 10}), slow)  # every row of a slow dataset is within the regime
+    assert fitted_with_current_settings(model(fit_settings(settings)))
+    assert not fitted_with_current_settings(model(None))  # made before the record: its settings are unknown
+    moved = {**settings, "coverage": dataclasses.replace(cc, fit_max_speed=2 * cc.fit_max_speed)}
+    assert not fitted_with_current_settings(model(fit_settings(moved)))
+    other_id = dataclasses.replace(settings["identification"], consistency="log_cholesky", loss_terms=("load",))
+    assert not fitted_with_current_settings(model(fit_settings({**settings, "identification": other_id})))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -148,6 +149,13 @@ def lab_settings(robot: str = CELL_ROBOT) -> dict[str, Any]:
     return {"identification": spec.identification, "coverage": spec.learning}
 
 
+def fit_settings(settings: dict[str, Any]) -> dict[str, Any]:
+    """The robot.yaml settings a model is fitted with (`lab_settings`: `identification`, `learning`) as its meta
+    keeps them (JSON's types): `prepare` trains again a model fitted with others."""
+    return json.loads(json.dumps({"identification": dataclasses.asdict(settings["identification"]),
+                                  "learning": dataclasses.asdict(settings["coverage"])}))
+
+
 def load_samples(dataset: Path, split: Literal["train", "test"], robot: RobotModel, mode: DerivativeMode = "zero_phase",
                  samples: int | None = None, seed: int = 0) -> tuple[Samples, str]:
     """A split's trajectories stacked with derivatives (the manifest's filter), optionally cut to
@@ -233,6 +241,7 @@ def train(
     t0 = time.perf_counter()
     s, sha = load_samples(Path(dataset), "train", robot_model, opts.derivatives, samples, seed)
     model = fit_model(kind, robot_model, s, opts, sha)
+    model.meta.extra["fit_settings"] = fit_settings(settings)
     fit_s = time.perf_counter() - t0
     pred = model.predict(s.q, s.dq, s.ddq, s.starts)
     rmse = np.sqrt(np.nanmean((pred - s.tau) ** 2, axis=0))

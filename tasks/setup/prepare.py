@@ -32,7 +32,7 @@ from cell.sensing.artefacts import calibration_matches
 from cell.sensing.virtual_sensor import PERIOD_TOLERANCE
 from drivers.errors import DataError
 from tasks.lab.collect import collect
-from tasks.lab.train import lab_settings, train
+from tasks.lab.train import fit_settings, lab_settings, train
 from tasks.setup.calibrate import LoadApplier, calibrate
 
 log = logging.getLogger(__name__)
@@ -97,7 +97,11 @@ def prepare(
         try:
             m = load_model(model_dir, robot)
             model_ok = (isinstance(m, LearnedModel) and m.meta.kind == "H1" and m.meta.training_data_sha256 == data_sha
-                        and m.meta.features.get("derivatives") == "causal" and fitted_in_regime(m, data_dir))
+                        and m.meta.features.get("derivatives") == "causal")
+            if model_ok and not fitted_with_current_settings(m):
+                log.warning("prepare %s: %s was fitted with other robot.yaml `identification` or `learning` settings: "
+                            "training it again", tool, model_dir)
+                model_ok = False
         except DataError:
             model_ok = False
     if model_ok:
@@ -121,15 +125,10 @@ def prepare(
             "steps": steps, "wall_s": round(time.perf_counter() - t0, 1)}
 
 
-def fitted_in_regime(model: LearnedModel, data_dir: Path) -> bool:
-    """Whether a model of a dataset with fast moves had its residual fitted in the robot's current regime
-    (robot.yaml `learning.fit_max_speed`/`fit_max_accel`); a dataset without them is all within it."""
-    if not _has_part(data_dir, "fast"):
-        return True
-    cc = lab_settings()["coverage"]
-    got = model.meta.extra.get("coverage", {})
-    return (float(got.get("fit_max_speed", 0.0)), float(got.get("fit_max_accel", 0.0))) == (
-        cc.fit_max_speed, cc.fit_max_accel)
+def fitted_with_current_settings(model: LearnedModel) -> bool:
+    """Whether a model was fitted with the robot's current `identification` and `learning` settings (robot.yaml), as
+    `train` records them in its meta; a model without that record is taken as fitted with others."""
+    return model.meta.extra.get("fit_settings") == fit_settings(lab_settings())
 
 
 def dataset_period(manifest: Path) -> float | None:
