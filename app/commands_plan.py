@@ -31,6 +31,7 @@ def kinematic_baseline(cfg: CellConfig, robot: RobotModel, predictor: Any, pcfg:
     made for this arm and these planner settings there is no honest kinematic figure to give."""
 
     from app.cells import cell_identity
+    from bench.planning_calibration import CALIBRATION_SEED
     from cell.planning.baselines import KinematicPlanner, kinematic_calibration_key
 
     path = planning_model.ARTEFACTS / "kinematic.json"
@@ -40,7 +41,8 @@ def kinematic_baseline(cfg: CellConfig, robot: RobotModel, predictor: Any, pcfg:
         stored = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
         return None, f"not calibrated ({path} unreadable: {exc})"
-    key = kinematic_calibration_key({k: v for k, v in cell_identity(cfg, kind, seed).items() if k != "seed"}, pcfg)
+    key = kinematic_calibration_key({k: v for k, v in cell_identity(cfg, kind, seed).items() if k != "seed"}, pcfg,
+                                    CALIBRATION_SEED)
     if not isinstance(stored, dict) or stored.get("key") != json.loads(json.dumps(key)):
         return None, f"not calibrated for this arm or these planner settings ({path} was made for others)"
     acc = np.minimum(stored["acceleration_limits"], pcfg.acceleration_limits).tolist()

@@ -48,6 +48,7 @@ def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
     """Assemble the bench: the prepared hybrid model, config/plans.yaml's planner settings and named paths,
     and the simulated cell (guarded unless --no-guard) to execute each plan on."""
     from bench.planning import PlanningSetup, bench_planning
+    from bench.planning_calibration import CALIBRATION_SEED
     from cell.collision.geometry import CollisionChecker
     from cell.planning.planner import TimedTrajectory
     from cell.planning.ppo_planner import PpoSettings
@@ -63,9 +64,9 @@ def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
     if not np.all(np.isfinite(effort) & (effort > 0)):
         raise ConfigError("bench planning: the robot's URDF has no finite effort limits")
 
-    def runner(guarded: bool) -> Any:
+    def runner(guarded: bool, seed: int | None) -> Any:
         def open_for_plan() -> tuple[Any, Any]:
-            holder = open_cell(cfg, "sim", robot, args.seed, "free")
+            holder = open_cell(cfg, "sim", robot, seed, "free")
             try:
                 cell = holder.open()
                 return (with_guard(cfg, "wipe", cell, robot) if guarded else cell), holder
@@ -86,10 +87,11 @@ def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
     setup = PlanningSetup(
         robot=robot, torque_fn=predictor, terms=terms, model_name=model_name, pcfg=plan_file.planner,
         named=plan_file.paths, collisions=CollisionChecker.for_scene(robot, replace(cfg.scene, kind="free")),
-        run=runner(not args.no_guard),
+        run=runner(not args.no_guard, args.seed),
         # The calibration measures torques only: the guard cannot change them, and a false detection would
-        # cut a reference run short and bias the accelerations low (docs/planning.md).
-        calibration_run=runner(False),
+        # cut a reference run short and bias the accelerations low (docs/planning.md).  Its runs have their own
+        # noise seed, so the stored settings do not depend on the bench seed that happened to make them.
+        calibration_run=runner(False, CALIBRATION_SEED),
         safety_fraction=cfg.safety.joint_torque_fraction,
         workspace=(np.asarray(cfg.safety.workspace_min, float), np.asarray(cfg.safety.workspace_max, float)),
         artefacts=ARTEFACTS, arm_identity=identity,

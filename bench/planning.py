@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from bench.planning_calibration import calibrate, calibrate_trust, load_or_calibrate
+from bench.planning_calibration import CALIBRATION_SEED, calibrate, calibrate_trust, load_or_calibrate
 from cell.collision.geometry import CollisionChecker
 from cell.control.signals import raise_if_interrupted
 from cell.model.robot import RobotModel
@@ -39,7 +39,6 @@ log = logging.getLogger(__name__)
 PLANNER_NAMES = ("uniform", "kinematic", "ppo", "model")
 PAPER_IMPROVEMENT_PCT = {"trajectory_1": 24.7, "trajectory_2": 15.3, "trajectory_3": 21.3}
 CALIBRATION_PATHS = 5  # random reference paths besides the named ones
-CALIBRATION_SEED = 1000  # their draw: fixed, apart from any bench seed
 # Torque-bound reference moves for the model trust alone (the torque class's draw, same seed): the per-joint
 # shares let joints 1 and 3 use more of their bound, and these moves are where joint 1's start peaks are
 # highest on the plant (docs/planning.md).
@@ -162,9 +161,10 @@ def model_trust(s: PlanningSetup) -> dict[str, Any]:
            "exact_smoothing_s": s.pcfg.exact_smoothing_s, "residual": s.pcfg.residual,
            "tcp_speed_limit": s.pcfg.tcp_speed_limit, "extra_reference_deg": TRUST_REFERENCE_DEG,
            "exact_smoothing_start_s": s.pcfg.exact_smoothing_start_s, "exact_smoothing_blend_s": BLEND_S,
+           "exact_smoothing_stop_s": s.pcfg.exact_smoothing_stop_s,
            "torque_references": TRUST_TORQUE_PATHS, "toppra_gridpoints": s.pcfg.toppra_gridpoints,
            "exact_step": "rest-to-rest average, one sample at rest",
-           "per_joint": True}
+           "per_joint": True, "noise_seed": CALIBRATION_SEED}
     return load_or_calibrate(s.artefacts / "model_trust.json", key,
                              lambda: calibrate_trust(planner, trust_reference_set(s), s.calibration_run, limit))
 
@@ -178,7 +178,8 @@ def kinematic_limits(s: PlanningSetup) -> dict[str, Any]:
         acc = np.minimum(acc, s.pcfg.acceleration_limits)  # the configured guards stay the ceiling
         return KinematicPlanner(s.robot, s.torque_fn, replace(s.pcfg, acceleration_limits=acc.tolist()), s.collisions)
 
-    out = load_or_calibrate(s.artefacts / "kinematic.json", kinematic_calibration_key(s.arm_identity, s.pcfg),
+    out = load_or_calibrate(s.artefacts / "kinematic.json",
+                            kinematic_calibration_key(s.arm_identity, s.pcfg, CALIBRATION_SEED),
                             lambda: calibrate(make, s.robot, ref, s.calibration_run, limit))
     out["acceleration_limits"] = np.minimum(out["acceleration_limits"], s.pcfg.acceleration_limits).tolist()
     return out

@@ -30,6 +30,10 @@ from cell.planning.baselines import KinematicPlanner
 from cell.planning.planner import Planner, PlanningError, TimedTrajectory
 
 log = logging.getLogger(__name__)
+# The reference paths' random draw and the plant's noise in the calibration runs: fixed, apart from any bench
+# seed, so a stored setting is the same whichever bench made it (the measured peaks move by about 0.01 of a
+# motor limit with the noise, and a bisection step is that fine).
+CALIBRATION_SEED = 1000
 Run = Callable[[TimedTrajectory], dict[str, Any]]  # execute on the plant -> {"outcome", "peak_ratio", ...}
 
 

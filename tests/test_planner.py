@@ -207,11 +207,11 @@ def test_the_exact_step_delivers_toppras_profile_plus_the_smoothing_window_only(
     assert exact.duration < smoothed.duration
 
 
-def test_a_shorter_window_where_the_arm_leaves_rest_saves_half_the_difference_and_keeps_every_bound():
+def test_a_shorter_window_where_the_arm_leaves_or_reaches_rest_saves_half_the_difference_and_keeps_every_bound():
     """The exact step's average: equal windows are the plain moving average (from its last sample at rest); a
-    shorter start window ends the motion (w_end - w_start) / 2 samples sooner, leaves and reaches rest, and no
-    speed or acceleration grows."""
-    from cell.planning.averaging import rest_to_rest_average
+    shorter start or stop window ends the motion (w_motion - w) / 2 samples sooner, leaves and reaches rest, and
+    no speed or acceleration grows."""
+    from cell.planning.averaging import BLEND_S, rest_to_rest_average
 
     dt, n = 0.008, 120
     t = np.arange(n) * dt
@@ -229,7 +229,15 @@ def test_a_shorter_window_where_the_arm_leaves_rest_saves_half_the_difference_an
     assert same[3][0] == 0.0 and same[3][1] > 0.0
     short = rest_to_rest_average(q, dq, ddq, s, end, dt, 1 * dt, w * dt)
     assert len(short[0]) == len(same[0]) - 2
-    for q_avg, dq_avg, ddq_avg, s_avg in (same, short):
+    # the same at the stop: a shorter stop window ends the motion sooner by half the difference, and the middle
+    # of the motion keeps the motion's window (the stop's takes over only within BLEND_S of the end)
+    stop = rest_to_rest_average(q, dq, ddq, s, end, dt, 1 * dt, w * dt, 1 * dt)
+    assert len(stop[0]) == len(short[0]) - 2
+    middle = slice(int(BLEND_S / dt) + 2, n - int(BLEND_S / dt) - 2)
+    assert np.array_equal(stop[2][middle], short[2][middle])
+    end_part = slice(n - 20, len(stop[2]))
+    assert not np.allclose(stop[2][end_part], short[2][end_part])  # a steeper end: the stop's shorter ramp
+    for q_avg, dq_avg, ddq_avg, s_avg in (same, short, stop):
         assert np.allclose(q_avg[0], q[0]) and np.allclose(q_avg[-1], end) and s_avg[-1] == 1.0
         assert np.allclose(dq_avg[[0, -1]], 0.0, atol=1e-3)
         assert np.all(np.abs(dq_avg) <= np.max(np.abs(dq), axis=0) + 1e-12)

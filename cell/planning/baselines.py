@@ -68,12 +68,12 @@ class UniformScalingPlanner(PlannerBase):
         return traj
 
 
-def kinematic_calibration_key(arm: dict[str, Any], pcfg: PlannerConfig) -> dict[str, Any]:
+def kinematic_calibration_key(arm: dict[str, Any], pcfg: PlannerConfig, noise_seed: int) -> dict[str, Any]:
     """What a stored calibration of the kinematic baseline's accelerations was made for: the arm (its identity
-    without the noise seed) and the planner settings its bisection depends on.  `bench planning` stores the
-    calibration under it and `plan` reads it back only when it matches."""
+    without the run's noise seed), the planner settings its bisection depends on and the noise seed of its own
+    runs.  `bench planning` stores the calibration under it and `plan` reads it back only when it matches."""
     return {"arm": arm, "limit_fraction": 1.0 - pcfg.torque_margin, "velocity_fraction": pcfg.velocity_fraction,
-            "guards": list(pcfg.acceleration_limits), "smoothing_s": pcfg.smoothing_s}
+            "guards": list(pcfg.acceleration_limits), "smoothing_s": pcfg.smoothing_s, "noise_seed": noise_seed}
 
 
 class KinematicPlanner(ToppraPlanner):

@@ -50,15 +50,20 @@ class PlannerConfig:
     # local slow-down where that mixed speeds over a cap, then a uniform stretch for any excess left),
     # which cost ours 0.06-0.12 s a path against its own profile (docs/notes/planning-history.md).
     retiming: str = "exact"
-    # The jerk bound of the exact step: the window the joint trajectory is averaged over.  A centred average
-    # leaves the middle of the motion in time and adds half the window at each end, where the arm leaves
-    # and reaches rest.  16 ms let joint 4 overshoot the model by 50 % as it stopped (0.97-0.99 of its motor
-    # limit on the plant); 40 ms kept that path at 0.64-0.73 at full model trust.
+    # The jerk bound of the exact step: the window the joint trajectory is averaged over through the motion.  A
+    # centred average leaves the middle of the motion in time and adds half the window at each end, where the
+    # arm leaves and reaches rest.  With 16 ms through the motion, mid-path joint-1 peaks reached the safety
+    # stop on the plant (0.94 of the motor limit); 40 ms holds them.
     exact_smoothing_s: float = 0.04
     # The same bound where the arm leaves rest (the window gives way to `exact_smoothing_s` over the first
     # 0.2 s).  Half the difference comes off every plan; the start peaks it raises are held by `start_margin`
     # (docs/planning.md).  Equal windows: one plain average.
     exact_smoothing_start_s: float = 0.024
+    # And where the arm reaches rest (`exact_smoothing_s` gives way to it over the last 0.2 s): a shorter window
+    # takes half the difference off every plan.  On this plant the stop needs the motion's window: at 24 ms a
+    # wrist joint overshot its model as it stopped (0.92 of its motor limit on a trust reference path), and the
+    # trust calibrated for it cost the time back (docs/notes/planning-history.md).
+    exact_smoothing_stop_s: float = 0.04
     # The full model's torque beyond toppra's terms (viscous friction, the learned residual) is taken where
     # it occurs ("local": subtracted from the bound at each grid point, from the previous plan) rather than
     # by lowering a joint's bound along the whole path by its worst excess ("global").
@@ -82,6 +87,8 @@ class PlannerConfig:
         require(self.retiming in RETIMINGS, f"{where}.retiming", f"must be one of {', '.join(RETIMINGS)}")
         require(0 <= self.exact_smoothing_s <= 0.2, f"{where}.exact_smoothing_s", "must lie in [0, 0.2] s")
         require(0 <= self.exact_smoothing_start_s <= self.exact_smoothing_s, f"{where}.exact_smoothing_start_s",
+                "must lie in [0, exact_smoothing_s]")
+        require(0 <= self.exact_smoothing_stop_s <= self.exact_smoothing_s, f"{where}.exact_smoothing_stop_s",
                 "must lie in [0, exact_smoothing_s]")
         require(self.residual in RESIDUALS, f"{where}.residual", f"must be one of {', '.join(RESIDUALS)}")
         require(0 <= self.tcp_speed_limit <= 5.0, f"{where}.tcp_speed_limit", "must lie in [0, 5] m/s (0: none)")

@@ -352,11 +352,11 @@ class ToppraPlanner(PlannerBase):
         """Sample toppra's profile every period as it is (s, its speed and acceleration from the profile's own
         constant-acceleration segments, not from differences).  Where a speed cap dips below the profile
         between grid points, time is dilated there alone, by the excess.  Then the joint trajectory (not s)
-        is averaged over `exact_smoothing_start_s` as it leaves rest and `exact_smoothing_s` as it reaches
-        rest (`rest_to_rest_average`): every joint's speed and acceleration are averages of the planned ones,
-        so neither grows past its bound (averaging s instead mixes the large path accelerations near the
-        path's ends, where dp/ds -> 0, into points where they are not small); the path is left by well under
-        a milliradian.  A uniform stretch is the last resort, logged."""
+        is averaged over `exact_smoothing_start_s` as it leaves rest, `exact_smoothing_s` through the motion and
+        `exact_smoothing_stop_s` as it reaches rest (`rest_to_rest_average`): every joint's speed and
+        acceleration are averages of the planned ones, so neither grows past its bound (averaging s instead
+        mixes the large path accelerations near the path's ends, where dp/ds -> 0, into points where they are
+        not small); the path is left by well under a milliradian.  A uniform stretch is the last resort, logged."""
         dt = self.cfg.sample_period_s
         ts, t_end, i, tau, seg_a = sample_profile(grid, sd, dt)
         moving = ts < t_end
@@ -393,7 +393,8 @@ class ToppraPlanner(PlannerBase):
         ddq = ddp * s_d[:, None] ** 2 + dp * s_dd[:, None]
         if self.cfg.exact_smoothing_s > 0:
             q, dq, ddq, s = rest_to_rest_average(q, dq, ddq, s, path.waypoints[-1], dt,
-                                                 self.cfg.exact_smoothing_start_s, self.cfg.exact_smoothing_s)
+                                                 self.cfg.exact_smoothing_start_s, self.cfg.exact_smoothing_s,
+                                                 self.cfg.exact_smoothing_stop_s)
         traj = self.sample(self.name, np.arange(len(s)) * dt, q, dq, ddq)
         traj.s = s
         return traj

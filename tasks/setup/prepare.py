@@ -98,7 +98,7 @@ def prepare(
             m = load_model(model_dir, robot)
             model_ok = (isinstance(m, LearnedModel) and m.meta.kind == "H1" and m.meta.training_data_sha256 == data_sha
                         and m.meta.features.get("derivatives") == "causal")
-            if model_ok and not fitted_with_current_settings(m):
+            if isinstance(m, LearnedModel) and model_ok and not fitted_with_current_settings(m):
                 log.warning("prepare %s: %s was fitted with other robot.yaml `identification` or `learning` settings: "
                             "training it again", tool, model_dir)
                 model_ok = False
