@@ -102,11 +102,12 @@ def bench_sim(cfg: CellConfig, seed: int | None = None, repeats: int = 2) -> dic
     }
 
 
-def bench_modbus(n: int = 500, period_s: float | None = None) -> dict[str, float | int]:
+def bench_modbus(n: int = 500, period_s: float | None = None, timeout_s: float = 0.01) -> dict[str, float | int]:
     """Time `n` cycles of read_state + send_target against the local emulator (KinematicPlant).
 
     `period_s=None` runs the cycles back to back (pure communication cost); a period paces them like the
-    control loop.  Returns median and 99th percentile of the cycle time in ms.
+    control loop.  `timeout_s`: the driver's reply deadline (the cell's default; a reply later than it ends the
+    bench as a lost link would end a run).  Returns median and 99th percentile of the cycle time in ms.
     """
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
@@ -115,7 +116,7 @@ def bench_modbus(n: int = 500, period_s: float | None = None) -> dict[str, float
                          velocity=np.full(N_JOINTS, np.pi), effort=np.full(N_JOINTS, 150.0))
     times: list[float] = []
     with TM5Emulator(plant) as emu:
-        arm = TM5ModbusArm(TM5ModbusConfig(host="127.0.0.1", port=emu.port), limits, plant.dt)
+        arm = TM5ModbusArm(TM5ModbusConfig(host="127.0.0.1", port=emu.port, timeout_s=timeout_s), limits, plant.dt)
         with arm:
             arm.arm()
             q0 = arm.read_state().q

@@ -168,6 +168,8 @@ def test_stop_coil_ends_the_project(emulator: TM5Emulator, plant: FakePlant) -> 
 def test_bench_reports_cycle_times() -> None:
     from bench.timing import bench_modbus
 
-    result = bench_modbus(200)
+    # The report's shape, not the link's deadline (tested on its own): a busy machine may delay the emulator's
+    # thread past the cell's 10 ms reply deadline.
+    result = bench_modbus(200, timeout_s=1.0)
     assert result["n"] == 200
     assert 0 < result["modbus_cycle_median_ms"] <= result["modbus_cycle_p99_ms"]
