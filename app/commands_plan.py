@@ -11,10 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from app import planning_model
 from app.cells import cell_kind, open_cell
 from app.common import emit, save_bench_summary
-from app.planning_model import NOMINAL, prepared_model, torque_model
+from app.planning_model import ARTEFACTS, NOMINAL, prepared_model, torque_model
 from app.sensing import with_guard
 from app.tasks_registry import robot_for
 from cell.config import CellConfig, load_config
@@ -25,24 +24,24 @@ log = logging.getLogger("tmcell")
 
 
 def kinematic_baseline(cfg: CellConfig, robot: RobotModel, predictor: Any, pcfg: Any, collisions: Any, kind: str,
-                       seed: int | None) -> tuple[Any, str]:
+                       seed: int | None, store: Path) -> tuple[Any, str]:
     """The calibrated kinematic planner (TOPP-RA with speed and acceleration limits only, the accelerations
     calibrated once per arm on the plant by `bench planning`), or None and why not: without a calibration
-    made for this arm and these planner settings there is no honest kinematic figure to give."""
+    made for this arm and these planner settings there is no honest kinematic figure to give.  `store`: the
+    folder `bench planning` keeps its calibrations in."""
 
     from app.cells import cell_identity
-    from bench.planning_calibration import CALIBRATION_SEED
-    from cell.planning.baselines import KinematicPlanner, kinematic_calibration_key
+    from bench.planning_calibration import kinematic_calibration_key
+    from cell.planning.baselines import KinematicPlanner
 
-    path = planning_model.ARTEFACTS / "kinematic.json"
+    path = store / "kinematic.json"
     if not path.exists():
         return None, f"not calibrated (no {path}; `main.py bench planning` calibrates it on a simulated cell)"
     try:
         stored = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
         return None, f"not calibrated ({path} unreadable: {exc})"
-    key = kinematic_calibration_key({k: v for k, v in cell_identity(cfg, kind, seed).items() if k != "seed"}, pcfg,
-                                    CALIBRATION_SEED)
+    key = kinematic_calibration_key({k: v for k, v in cell_identity(cfg, kind, seed).items() if k != "seed"}, pcfg)
     if not isinstance(stored, dict) or stored.get("key") != json.loads(json.dumps(key)):
         return None, f"not calibrated for this arm or these planner settings ({path} was made for others)"
     acc = np.minimum(stored["acceleration_limits"], pcfg.acceleration_limits).tolist()
@@ -115,7 +114,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
                     Path(cfg.recording.directory) / "plans", only, terms)
     kind = cell_kind(cfg, args.cell)
     add_kinematic_comparison(out, kinematic_baseline(cfg, robot, predictor, plan_file.planner, collisions, kind,
-                                                     args.seed), plan_file.paths, cfg, robot, open_for_plan)
+                                                     args.seed, ARTEFACTS), plan_file.paths, cfg, robot, open_for_plan)
     emit(out, args.json)
     tags = (["waypoints"] if args.waypoints else []) + [f"path-{name}" for name in only or []]
     save_bench_summary(out, "plan", tags, args)

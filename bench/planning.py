@@ -22,12 +22,18 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from bench.planning_calibration import CALIBRATION_SEED, calibrate, calibrate_trust, load_or_calibrate
+from bench.planning_calibration import (
+    CALIBRATION_SEED,
+    calibrate,
+    calibrate_trust,
+    kinematic_calibration_key,
+    load_or_calibrate,
+)
 from cell.collision.geometry import CollisionChecker
 from cell.control.signals import raise_if_interrupted
 from cell.model.robot import RobotModel
 from cell.planning.averaging import BLEND_S
-from cell.planning.baselines import KinematicPlanner, UniformScalingPlanner, kinematic_calibration_key
+from cell.planning.baselines import KinematicPlanner, UniformScalingPlanner
 from cell.planning.config import PlannerConfig
 from cell.planning.constraints import ToppraTerms
 from cell.planning.planner import GeometricPath, Planner, PlanningError, TimedTrajectory, ToppraPlanner, TorqueFn
@@ -178,8 +184,7 @@ def kinematic_limits(s: PlanningSetup) -> dict[str, Any]:
         acc = np.minimum(acc, s.pcfg.acceleration_limits)  # the configured guards stay the ceiling
         return KinematicPlanner(s.robot, s.torque_fn, replace(s.pcfg, acceleration_limits=acc.tolist()), s.collisions)
 
-    out = load_or_calibrate(s.artefacts / "kinematic.json",
-                            kinematic_calibration_key(s.arm_identity, s.pcfg, CALIBRATION_SEED),
+    out = load_or_calibrate(s.artefacts / "kinematic.json", kinematic_calibration_key(s.arm_identity, s.pcfg),
                             lambda: calibrate(make, s.robot, ref, s.calibration_run, limit))
     out["acceleration_limits"] = np.minimum(out["acceleration_limits"], s.pcfg.acceleration_limits).tolist()
     return out

@@ -27,6 +27,7 @@ from cell.control.signals import raise_if_interrupted
 from cell.data.atomic import write_atomic
 from cell.model.robot import RobotModel
 from cell.planning.baselines import KinematicPlanner
+from cell.planning.config import PlannerConfig
 from cell.planning.planner import Planner, PlanningError, TimedTrajectory
 
 log = logging.getLogger(__name__)
@@ -35,6 +36,14 @@ log = logging.getLogger(__name__)
 # motor limit with the noise, and a bisection step is that fine).
 CALIBRATION_SEED = 1000
 Run = Callable[[TimedTrajectory], dict[str, Any]]  # execute on the plant -> {"outcome", "peak_ratio", ...}
+
+
+def kinematic_calibration_key(arm: dict[str, Any], pcfg: PlannerConfig) -> dict[str, Any]:
+    """What a stored calibration of the kinematic baseline's accelerations was made for: the arm (its identity
+    without the run's noise seed), the planner settings its bisection depends on and the noise seed of its own
+    runs.  `bench planning` stores the calibration under it and `plan` reads it back only when it matches."""
+    return {"arm": arm, "limit_fraction": 1.0 - pcfg.torque_margin, "velocity_fraction": pcfg.velocity_fraction,
+            "guards": list(pcfg.acceleration_limits), "smoothing_s": pcfg.smoothing_s, "noise_seed": CALIBRATION_SEED}
 
 
 def acceleration_shape(robot: RobotModel, qs: np.ndarray) -> np.ndarray:

@@ -109,21 +109,21 @@ def test_bench_model_holds_out_trajectories_when_the_dataset_has_no_test_split(t
 
 
 # ------------------------------------------------------------------------------ plan against kinematic
-def test_plan_says_not_calibrated_without_a_kinematic_calibration(tmp_path, monkeypatch):
-    import app.planning_model as planning
+def test_plan_says_not_calibrated_without_a_kinematic_calibration(tmp_path):
     from app.commands_plan import add_kinematic_comparison, kinematic_baseline
+    from app.planning_model import PLANS
     from cell.config import load_config
     from cell.model.specs import cell_robot
     from tasks.setup.plan import load_plan_file
 
-    monkeypatch.setattr(planning, "ARTEFACTS", tmp_path)
     cfg = load_config(None)
     robot = cell_robot(cfg)
-    pcfg = load_plan_file(planning.PLANS).planner
-    baseline = kinematic_baseline(cfg, robot, None, pcfg, None, "sim", None)
+    pcfg = load_plan_file(PLANS).planner
+    baseline = kinematic_baseline(cfg, robot, None, pcfg, None, "sim", None, tmp_path)
     assert baseline[0] is None and baseline[1].startswith("not calibrated")
     (tmp_path / "kinematic.json").write_text(json.dumps({"key": {"arm": "another"}, "acceleration_limits": [1] * 6}))
-    assert kinematic_baseline(cfg, robot, None, pcfg, None, "sim", None)[1].startswith("not calibrated for this arm")
+    assert kinematic_baseline(cfg, robot, None, pcfg, None, "sim", None, tmp_path)[1].startswith(
+        "not calibrated for this arm")
     out: dict[str, Any] = {"paths": {"p": {"improvement_vs_uniform_pct": 44.0, "optimized_s": 1.0}},
                             "mean_improvement_vs_uniform_pct": 44.0}
     add_kinematic_comparison(out, baseline, {}, cfg, robot, None)

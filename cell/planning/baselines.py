@@ -4,13 +4,11 @@ speed and acceleration limits only), and the registry of all three."""
 from __future__ import annotations
 
 import time
-from typing import Any
 
 import numpy as np
 import toppra.algorithm as ta_algo
 import toppra.constraint as ta_con
 
-from cell.planning.config import PlannerConfig
 from cell.planning.planner import GeometricPath, PlannerBase, PlanningError, TimedTrajectory, ToppraPlanner
 
 
@@ -66,14 +64,6 @@ class UniformScalingPlanner(PlannerBase):
         traj.plan_time_s = time.perf_counter() - t0
         traj.torque_scale = scale
         return traj
-
-
-def kinematic_calibration_key(arm: dict[str, Any], pcfg: PlannerConfig, noise_seed: int) -> dict[str, Any]:
-    """What a stored calibration of the kinematic baseline's accelerations was made for: the arm (its identity
-    without the run's noise seed), the planner settings its bisection depends on and the noise seed of its own
-    runs.  `bench planning` stores the calibration under it and `plan` reads it back only when it matches."""
-    return {"arm": arm, "limit_fraction": 1.0 - pcfg.torque_margin, "velocity_fraction": pcfg.velocity_fraction,
-            "guards": list(pcfg.acceleration_limits), "smoothing_s": pcfg.smoothing_s, "noise_seed": noise_seed}
 
 
 class KinematicPlanner(ToppraPlanner):

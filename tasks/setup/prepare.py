@@ -25,6 +25,7 @@ import numpy as np
 from cell.config import CellConfig
 from cell.data.dataset import files_sha256, load_manifest, manifest_files
 from cell.model.dynamics.artefact import load_model
+from cell.model.dynamics.base import TorqueModel
 from cell.model.dynamics.learned import LearnedModel
 from cell.model.robot import RobotModel
 from cell.planning.config import PlannerConfig
@@ -98,7 +99,7 @@ def prepare(
             m = load_model(model_dir, robot)
             model_ok = (isinstance(m, LearnedModel) and m.meta.kind == "H1" and m.meta.training_data_sha256 == data_sha
                         and m.meta.features.get("derivatives") == "causal")
-            if isinstance(m, LearnedModel) and model_ok and not fitted_with_current_settings(m):
+            if model_ok and not fitted_with_current_settings(m):
                 log.warning("prepare %s: %s was fitted with other robot.yaml `identification` or `learning` settings: "
                             "training it again", tool, model_dir)
                 model_ok = False
@@ -125,7 +126,7 @@ def prepare(
             "steps": steps, "wall_s": round(time.perf_counter() - t0, 1)}
 
 
-def fitted_with_current_settings(model: LearnedModel) -> bool:
+def fitted_with_current_settings(model: TorqueModel) -> bool:
     """Whether a model was fitted with the robot's current `identification` and `learning` settings (robot.yaml), as
     `train` records them in its meta; a model without that record is taken as fitted with others."""
     return model.meta.extra.get("fit_settings") == fit_settings(lab_settings())
