@@ -290,8 +290,44 @@ def test_a_recording_that_cannot_be_written_is_a_recording_error(tmp_path, monke
     rec = Recorder(tmp_path / "run", chunk_rows=2)
     monkeypatch.setattr(pq, "write_table", full_disk)
     rec.append({"t": 0.0})
+    rec.append({"t": 0.1})  # a whole part: handed to the writer, which fails
     with pytest.raises(RecordingError, match="No space left on device"):
-        rec.append({"t": 0.1})
+        rec.flush()
+    # The recording stays failed: the control loop's next row raises it too, and so does closing.
+    with pytest.raises(RecordingError, match="No space left on device"):
+        rec.append({"t": 0.2})
+    with pytest.raises(RecordingError, match="No space left on device"):
+        rec.close()
+    assert rec.closed and not list((tmp_path / "run" / "log").glob("*.parquet"))
+
+
+def test_no_part_after_one_that_failed_is_written(tmp_path, monkeypatch):
+    """A log with a hole in it would read as a jump in time: after a failed part, later ones are refused."""
+    import pyarrow.parquet as pq
+
+    from cell.data.recorder import Recorder
+    from drivers.errors import RecordingError
+
+    written = pq.write_table
+    calls = []
+
+    def fails_once(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise OSError(5, "Input/output error")
+        return written(*args, **kwargs)
+
+    monkeypatch.setattr(pq, "write_table", fails_once)
+    rec = Recorder(tmp_path / "run", chunk_rows=2)
+    for i in range(8):
+        try:
+            rec.append({"t": float(i)})
+        except RecordingError:
+            break
+    with pytest.raises(RecordingError, match="Input/output error"):
+        rec.close()
+    assert len(calls) == 2
+    assert sorted(p.name for p in (tmp_path / "run" / "log").glob("*.parquet")) == ["part-00000.parquet"]
 
 
 @pytest.mark.parametrize("reading", [1.2, 3e38, -1.06])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
@@ -56,7 +58,10 @@ def test_recording_survives_a_kill_between_chunks(tmp_path):
     rec = Recorder(run, chunk_rows=10)
     for i in range(35):
         rec.append({"t": i * 0.008, "state": "wipe", "fz": float(i)})
-    # No close(): as if the process died here.  Three whole chunks are on disk and readable.
+    # No close(): as if the process died here, once the writer has taken in the three whole chunks handed to it.
+    deadline = time.monotonic() + 60
+    while rec.rows_written < 30 and time.monotonic() < deadline:
+        time.sleep(0.01)
     table = read_log(run)
     assert table.num_rows == 30
     assert table.column("fz").to_pylist() == [float(i) for i in range(30)]
@@ -69,6 +74,7 @@ def test_a_half_written_chunk_does_not_spoil_the_log(tmp_path):
     rec = Recorder(run, chunk_rows=5)
     for i in range(5):
         rec.append({"t": float(i)})
+    rec.flush()
     (run / "log" / ".part-00001.parquet.tmp").write_bytes(b"PAR1 truncated")
     assert read_log(run).num_rows == 5
     assert pq.read_table(run / "log" / "part-00000.parquet").num_rows == 5

@@ -9,10 +9,12 @@ checks: a part damaged on disk is refused, never read as values.
 
 from __future__ import annotations
 
+import collections
 import datetime as _dt
 import hashlib
 import json
 import logging
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -51,10 +53,16 @@ def new_run_dir(root: Path, task: str) -> Path:
 
 
 class Recorder:
-    """Buffers step rows (flat dicts of scalars/strings) and flushes them as Parquet parts."""
+    """Buffers step rows (flat dicts of scalars/strings) column by column; a worker thread writes them as Parquet
+    parts, so the control loop never waits on the disk.
+
+    The first row names the columns; a later row's missing column is recorded as null, an extra one ignored.
+    A part that cannot be written fails the recording: `append`, `flush` and `close` raise its RecordingError
+    from then on (in the caller's thread, at the latest one period after the failed write), and no later part
+    is written (a log with a hole in it would read as a jump in time)."""
 
     def __init__(self, run_dir: Path, chunk_rows: int = 250) -> None:
-        # The parts are built and written between control periods.  pyarrow's default pool (jemalloc) hands the
+        # The parts are built and written beside the control periods.  pyarrow's default pool (jemalloc) hands the
         # memory back to the OS in the background afterwards, and the next few dozen periods ran slower (5 % on
         # average against 2.5 % with the system allocator, peg runs alternated): the process keeps malloc's.
         pa.set_memory_pool(pa.system_memory_pool())
@@ -62,41 +70,72 @@ class Recorder:
         self.log_dir = self.run_dir / "log"
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.chunk_rows = chunk_rows
-        self._rows: list[dict[str, Any]] = []
+        self._columns: dict[str, list[Any]] | None = None
+        self._rows = 0  # rows in `_columns` not yet handed over
         self._parts = 0
-        self._columns: list[str] | None = None
         self._checksums: dict[str, dict[str, Any]] = {}  # part file -> sha256 and rows, as in the manifest
         self.rows_written = 0
         self.closed = False
+        self._failure: RecordingError | None = None
+        # One worker, so the parts are written in order.  A part takes a few milliseconds (half a period, more on a
+        # slow or busy disk); written in the loop's thread it delayed the next period.  The worker is started here,
+        # before any control loop, so that the loop's raised priority covers it too (cell/control/priority.py):
+        # it holds the interpreter lock while it converts a part's columns.
+        self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="step-log")
+        self._writer.submit(lambda: None).result()
+        self._pending: collections.deque[Future[None]] = collections.deque()
 
     def append(self, row: dict[str, Any]) -> None:
         if self.closed:
             raise RuntimeError("recording is closed")
+        if self._failure is not None:
+            raise self._failure
         if self._columns is None:
-            self._columns = list(row)
-        elif self.closed:
-            return
-        self._rows.append(row)
-        if len(self._rows) >= self.chunk_rows:
-            self.flush()
+            self._columns = {c: [] for c in row}
+        for name, values in self._columns.items():
+            values.append(row.get(name))
+        self._rows += 1
+        if self._rows >= self.chunk_rows:
+            self._hand_over()
 
     def flush(self) -> None:
-        if not self._rows:
-            return
+        """Hand the buffered rows to the writer and wait until every part so far is on disk (RecordingError if one
+        could not be written)."""
+        if self._rows:
+            self._hand_over()
+        while self._pending:
+            self._pending.popleft().result()
+        if self._failure is not None:
+            raise self._failure
+
+    def _hand_over(self) -> None:
         assert self._columns is not None
-        cols = {c: [r.get(c) for r in self._rows] for c in self._columns}
-        table = pa.table(cols)
-        final = self.log_dir / f"part-{self._parts:05d}.parquet"
-        try:
-            # Not synced to disk: the loop cannot wait on it, and a killed run still leaves every part whole.
-            save_atomic(final, lambda tmp: pq.write_table(table, tmp), durable=False)
-        except OSError as exc:
-            raise RecordingError(f"{final}: cannot write the step log: {exc.strerror or exc}") from None
-        self._checksums[final.name] = {"sha256": _sha256(final), "rows": table.num_rows}
-        self._write_manifest()
+        columns, self._columns = self._columns, {c: [] for c in self._columns}
+        rows, self._rows = self._rows, 0
+        part = self.log_dir / f"part-{self._parts:05d}.parquet"
         self._parts += 1
-        self.rows_written += len(self._rows)
-        self._rows = []
+        # Futures of written parts are dropped as they complete: a failure is kept in `_failure`.
+        while self._pending and self._pending[0].done():
+            self._pending.popleft()
+        self._pending.append(self._writer.submit(self._write_part, part, columns, rows))
+
+    def _write_part(self, final: Path, columns: dict[str, list[Any]], rows: int) -> None:
+        """The worker's job: one part, its checksum and the manifest."""
+        if self._failure is not None:
+            raise self._failure
+        try:
+            table = pa.table(columns)
+            # Not synced to disk: a killed run still leaves every part whole.
+            save_atomic(final, lambda tmp: pq.write_table(table, tmp), durable=False)
+            self._checksums[final.name] = {"sha256": _sha256(final), "rows": rows}
+            self._write_manifest()
+        except OSError as exc:
+            self._failure = RecordingError(f"{final}: cannot write the step log: {exc.strerror or exc}")
+            raise self._failure from None
+        except RecordingError as exc:
+            self._failure = exc
+            raise
+        self.rows_written += rows
 
     def _write_manifest(self) -> None:
         """The parts' checksums, replaced whole (a reader sees the previous manifest or this one)."""
@@ -108,12 +147,14 @@ class Recorder:
             raise RecordingError(f"{path}: cannot write the step log's manifest: {exc.strerror or exc}") from None
 
     def close(self) -> None:
+        """Write what is buffered and wait for the writer (RecordingError if a part could not be written)."""
         if self.closed:
             return
         try:
             self.flush()
         finally:
             self.closed = True
+            self._writer.shutdown(wait=True)
 
     def write_config(self, config: dict[str, Any]) -> None:
         _write(self.run_dir / "config.yaml", yaml.safe_dump(config, sort_keys=False))
