@@ -13,9 +13,14 @@ from cell.cliargs import NTHREAD, SEED, int_in
 def cmd_detect(args: argparse.Namespace) -> int:
     from tasks.lab.detect import detect
 
-    out = detect(load_cell_config(args), Path(args.data), args.robot, Path(args.model) if args.model else None,
-                 samples=args.samples, nthread=args.nthread, seed=args.seed or 0,
-                 plot=Path(args.plot) if args.plot else None)
+    data = Path(args.data)
+    out, runs = detect(load_cell_config(args), data, args.robot, Path(args.model) if args.model else None,
+                       samples=args.samples, nthread=args.nthread, seed=args.seed or 0)
+    if args.plot:
+        from tasks.lab.detect_plot import plot_detections
+
+        out["plot"] = str(plot_detections(runs, Path(args.plot), f"collision detector on {data.parent.name} "
+                                          f"({args.robot}, test trajectories)"))
     emit(out, args.json)
     return 0
 

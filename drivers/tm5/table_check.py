@@ -7,7 +7,7 @@ import socket
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 from pymodbus.client import ModbusTcpClient
@@ -15,6 +15,8 @@ from pymodbus.exceptions import ModbusException, ModbusIOException
 from pymodbus.pdu import ModbusPDU
 
 from drivers.errors import LifecycleError, LinkLostError, ProtocolError
+from drivers.interfaces import ArmState
+from drivers.tm5.ethernet_config import TMEthernetConfig
 from drivers.tm5.ethernet_slave import SlaveState
 from drivers.tm5.modbus import _exception_name, _first_line
 from drivers.tm5.registers import (
@@ -28,10 +30,21 @@ from drivers.tm5.registers import (
     regs_to_floats,
 )
 
-if TYPE_CHECKING:
-    from drivers.tm5.ethernet import TMEthernetArm
-
 log = logging.getLogger(__name__)
+
+
+class SlaveTables(Protocol):
+    """What the cross-check reads of a connected arm on TM's Ethernet Slave (`drivers.tm5.ethernet.TMEthernetArm`)."""
+
+    config: TMEthernetConfig
+
+    @property
+    def endpoint(self) -> str: ...
+
+    @property
+    def latest_table(self) -> SlaveState | None: ...
+
+    def read_state(self) -> ArmState: ...
 
 UNIT_ID = 1  # TM's Modbus server answers unit 1 (docs tm5-700.md section 3)
 # Both tables read the same encoders: at rest they differ by float32 rounding (~1e-5 deg).  A wrong table or
@@ -169,7 +182,7 @@ def compare(table: ModbusTable, slaves: Sequence[Sample], endpoint: str,
                       differing_flags=tuple(differing), unchecked_flags=tuple(unchecked))
 
 
-def check_arm(arm: TMEthernetArm) -> CrossCheck:
+def check_arm(arm: SlaveTables) -> CrossCheck:
     """The controller's Modbus table (at the arm's host, `modbus_port`, each step bounded by reply_timeout_s)
     against the connected `arm`'s Ethernet Slave tables just before and just after it (doctor, status, arming).
     Blocks on a request and its reply, and on the next broadcast: never call it from the control loop."""
@@ -187,7 +200,7 @@ def check_arm(arm: TMEthernetArm) -> CrossCheck:
     return compare(table, [before, _sample(arm)], f"{cfg.host}:{cfg.modbus_port}")
 
 
-def check_before_arming(arm: TMEthernetArm) -> None:
+def check_before_arming(arm: SlaveTables) -> None:
     """Refuse to arm (LifecycleError, one line) when the controller's Modbus table disagrees with the Ethernet
     Slave's, or (LinkLostError/ProtocolError) cannot be read: the cell would move on a table it cannot trust."""
     hint = "or set devices.arm.settings.modbus_port: null to arm without the cross-check"
@@ -203,7 +216,7 @@ def check_before_arming(arm: TMEthernetArm) -> None:
     log.info("%s", check.summary())
 
 
-def _sample(arm: TMEthernetArm) -> Sample:
+def _sample(arm: SlaveTables) -> Sample:
     state = arm.read_state()
     table = arm.latest_table
     if table is None:

@@ -118,6 +118,10 @@ class DetectorRun:
     settle_s: float = 0.0
 
 
+# A trajectory's source log name, its detector run and the pushes found in it: what the plot draws.
+PlotRun = tuple[str, DetectorRun, list[dict[str, Any]]]
+
+
 def settle_time(settings: DetectorSettings) -> float:
     """The residual settles within three of the observer's time constants, then the zeroing window averages."""
     return 3.0 / settings.observer_gain + settings.rebias_window_s
@@ -232,8 +236,9 @@ def fit_or_load(cfg: CellConfig, dataset: Path, robot_name: str, robot: RobotMod
 
 
 def detect(cfg: CellConfig, dataset: Path, robot_name: str, model_dir: Path | None = None, samples: int | None = None,
-           nthread: int = 2, seed: int = 0, plot: Path | None = None) -> dict[str, Any]:
-    """The detector over every test trajectory of `dataset`; a summary (and a PNG at `plot`).
+           nthread: int = 2, seed: int = 0) -> tuple[dict[str, Any], list[PlotRun]]:
+    """The detector over every test trajectory of `dataset`: a summary, and per trajectory its source log's name,
+    the detector's run and the pushes found in it (what `detect_plot.plot_detections` draws).
 
     CLI: main.py detect --robot NAME --data DATASET.yaml [--model DIR] [--samples N] [--plot PNG] [--json]
     """
@@ -252,7 +257,7 @@ def detect(cfg: CellConfig, dataset: Path, robot_name: str, model_dir: Path | No
     model, how = fit_or_load(cfg, dataset, robot_name, robot, model_dir, samples, nthread, seed)
     sources = _sources(dataset)
     rows: list[dict[str, Any]] = []
-    runs: list[tuple[str, DetectorRun, list[dict[str, Any]]]] = []
+    runs: list[PlotRun] = []
     for traj in trajs:
         source, t0 = _origin(traj, sources)
         run = run_detector(model, robot, traj, settings)
@@ -285,9 +290,4 @@ def detect(cfg: CellConfig, dataset: Path, robot_name: str, model_dir: Path | No
         "max_free_ratio_in_motion": max((r["max_free_ratio"] for r in free), default=None),
         "trajectories": rows,
     }
-    if plot is not None:
-        from tasks.lab.detect_plot import plot_detections
-
-        out["plot"] = str(plot_detections(runs, Path(plot), f"collision detector on {dataset.parent.name} "
-                                          f"({robot_name}, test trajectories)"))
-    return out
+    return out, runs

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -12,10 +12,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 if TYPE_CHECKING:
-    from tasks.lab.detect import DetectorRun
+    from tasks.lab.detect import PlotRun
 
 
-def plot_detections(runs: list[tuple[str, DetectorRun, list[dict[str, Any]]]], path: Path, title: str) -> Path:
+def plot_detections(runs: list[PlotRun], path: Path, title: str) -> Path:
     """One panel per trajectory: |r_j| / thr_j per joint over time (1 = the threshold), detections as
     vertical lines, pushes (held poses) shaded from onset to end."""
     n = max(len(runs), 1)
