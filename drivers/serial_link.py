@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import logging
+import os
 import select
 import termios
 import time
+from pathlib import Path
 
 import serial
 
@@ -27,6 +29,19 @@ READ_SLICE_S = 0.005
 # a thread descheduled for 5 ms between the call and that check raised a write timeout for a command
 # that was sent.  A wedged adapter is still noticed, this late at most.
 _WRITE_TIMEOUT_FLOOR_S = 0.2
+# Where Linux shows a USB-serial adapter's latency timer (ms): the longest it holds received bytes back before
+# passing them on when fewer than a USB packet arrived.  FTDI's default is 16 ms, longer than a reply timeout.
+_SYSFS_TTY = Path("/sys/class/tty")
+
+
+def latency_timer_ms(device: str, sysfs_tty: Path = _SYSFS_TTY) -> int | None:
+    """The USB-serial adapter's latency timer behind `device` (a /dev path or a /dev/serial/by-id link), or None
+    where the system shows none (not Linux, not a USB-serial adapter, a pseudo-terminal, a URL port)."""
+    try:
+        name = Path(os.path.realpath(device)).name
+        return int((sysfs_tty / name / "device" / "latency_timer").read_text().strip())
+    except (OSError, ValueError):
+        return None
 
 
 class SerialLink:
@@ -42,6 +57,7 @@ class SerialLink:
         self.label = label
         self.ser: serial.Serial | None = None
         self.fd: int | None = None  # None: a URL port without a file descriptor
+        self.low_latency = False  # whether the tty driver took the low-latency request at open
 
     def open(self) -> None:
         try:
@@ -63,6 +79,22 @@ class SerialLink:
             self.fd = self.ser.fileno()
         except (AttributeError, NotImplementedError, serial.SerialException):
             self.fd = None
+        self.low_latency = self._request_low_latency()
+
+    def _request_low_latency(self) -> bool:
+        """Ask the tty driver to pass received bytes on at once (Linux's ASYNC_LOW_LATENCY: an FTDI adapter's
+        latency timer goes from 16 ms to 1 ms), so that a reply is not held back past the reply timeout.  A port
+        that does not take it (a pseudo-terminal, a URL port, another OS, a driver without the flag) keeps its own
+        behaviour; `latency_timer_ms` tells what that is where the system shows it."""
+        setter = getattr(self.ser, "set_low_latency_mode", None)
+        if setter is None:
+            return False
+        try:
+            setter(True)
+        except (ValueError, serial.SerialException, OSError, termios.error) as exc:
+            log.debug("%s on %s: low-latency mode not available: %s", self.label, self.url, exc)
+            return False
+        return True
 
     def close(self) -> None:
         ser, self.ser, self.fd = self.ser, None, None

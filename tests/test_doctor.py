@@ -79,6 +79,32 @@ def test_doctor_names_each_injected_fault(emulated, fault, check, words):
     assert [c["name"] for c in out["checks"]] == CHECKS
 
 
+@pytest.mark.parametrize("over", [False, True])
+def test_the_sensor_port_check_reads_the_usb_adapters_latency_timer(emulated, monkeypatch, over):
+    from drivers.wacoh.driver import WacohSensor
+
+    holder, robot, cfg = emulated
+    timeout_ms = holder.sensor.config.timeout_s * 1e3
+    timer_ms = int(timeout_ms) + 11 if over else 1  # (FTDI's default is 16 ms; the low-latency mode's 1 ms)
+    monkeypatch.setattr(WacohSensor, "adapter_latency_ms", lambda self: timer_ms)
+    try:
+        checks = Doctor(holder.arm, holder.sensor, robot.limits,
+                        DoctorSettings(period_s=cfg.loop.period_s, tare_s=0.3, timing_steps=40,
+                                       tail_periods=3.0)).run()
+    finally:
+        for device in (holder.arm, holder.sensor):
+            with contextlib.suppress(DriverError):
+                device.disconnect()
+    by_name = {c.name: c for c in checks}
+    port = by_name["sensor_port"]
+    assert f"USB adapter latency timer {timer_ms} ms" in port.detail
+    if over:  # longer than the reply timeout: nearly every read would come late
+        assert port.status == "fail" and "reply timeout" in port.detail and "latency timer" in port.fix
+        assert by_name["sensor_line"].status == "skipped"
+    else:
+        assert port.status == "pass" and by_name["sensor_line"].status == "pass"
+
+
 def test_doctor_refuses_faults_on_the_real_cell(capsys):
     assert main(["doctor", "--cell", "real", "--inject", "freeze"]) == 2
     assert "emulated cell only" in capsys.readouterr().err

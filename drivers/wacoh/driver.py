@@ -13,7 +13,7 @@ import numpy as np
 
 from drivers.errors import DriverError, LinkLostError
 from drivers.interfaces import ForceSensor, Wrench
-from drivers.serial_link import LINK_ERRORS, READ_SLICE_S, SerialLink
+from drivers.serial_link import LINK_ERRORS, READ_SLICE_S, SerialLink, latency_timer_ms
 from drivers.wacoh.codec import (
     CMD_RECORD,
     CMD_SENSITIVITIES,
@@ -105,6 +105,16 @@ class WacohSensor(ForceSensor):
     def zero(self) -> np.ndarray:
         """Per-channel no-load output in counts (8192 until a software tare)."""
         return self._zero.copy()
+
+    def adapter_latency_ms(self) -> int | None:
+        """The USB-serial adapter's latency timer (ms), where the system shows it: after `connect`, the one the
+        low-latency request left (1 ms on an FTDI adapter that took it)."""
+        return latency_timer_ms(self.config.port)
+
+    @property
+    def low_latency(self) -> bool:
+        """Whether the port took the low-latency request when it was opened."""
+        return self._link.low_latency
 
     def counters(self) -> dict[str, int]:
         with self._cond:

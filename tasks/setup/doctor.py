@@ -91,7 +91,8 @@ class Doctor:
                 "100 % (docs/real-cell.md)"), run=node)
         port = self._step("sensor_port", self._sensor_connect, (
             "check devices.sensor.settings.port (the device exists, your user may open it: dialout group), "
-            "the baud rate, and that the sensor is powered"), run=has_sensor)
+            "the baud rate, and that the sensor is powered; a USB adapter's latency timer over the reply timeout: "
+            "set it to 1 ms (docs/real-cell.md, section 3)"), run=has_sensor)
         self._step("sensor_sensitivities", self._sensitivities, (
             "enter the calibration sheet's sensitivities in devices.sensor.settings.sensitivities, or replace "
             "a sensor whose reply is off its class"), run=port)
@@ -289,7 +290,17 @@ class Doctor:
         assert self.sensor is not None
         self._before = self.sensor.counters()
         self.sensor.connect()
-        return f"{self.sensor.config.port} answers ({self.sensor.config.mode} mode)"
+        cfg = self.sensor.config
+        detail = f"{cfg.port} answers ({cfg.mode} mode)"
+        timer = self.sensor.adapter_latency_ms()
+        if timer is not None:
+            # A USB adapter holds a short reply back up to its latency timer: longer than the reply timeout, a
+            # read finds nothing in time.
+            detail += f", USB adapter latency timer {timer} ms"
+            assert timer * 1e-3 <= cfg.timeout_s, (
+                f"{detail}, longer than the {cfg.timeout_s * 1e3:g} ms reply timeout (the port did not take the "
+                "low-latency request)")
+        return detail
 
     def _sensitivities(self) -> str:
         assert self.sensor is not None
