@@ -328,6 +328,15 @@ class ForceSensor(ABC):
             raise LifecycleError("cannot tare: the force sensor is not connected")
         self._tare(samples)
 
+    def tare_from_recent(self, samples: int = 50) -> bool:
+        """Zero the sensor at the mean of the last `samples` readings it returned, when they are recent enough to be
+        the present state (read one after another at a control loop's pace), without waiting for new ones: what a
+        control loop calls, where `tare` would hold it for as long as the sensor takes to send `samples` records.
+        False, and nothing changed, for a sensor that cannot (the caller then tares with `tare`)."""
+        if not self._connected:
+            raise LifecycleError("cannot tare: the force sensor is not connected")
+        return False
+
     def __enter__(self) -> ForceSensor:
         self.connect()
         return self

@@ -18,4 +18,6 @@ class SensorForceSource:
         return self.sensor.read()
 
     def rebias(self) -> None:
-        self.sensor.tare(self.tare_samples)
+        # Called from the control loop: the readings it already took when the sensor keeps them, else new ones.
+        if not self.sensor.tare_from_recent(self.tare_samples):
+            self.sensor.tare(self.tare_samples)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import logging
 import select
 import threading
@@ -45,6 +46,10 @@ _ZERO_REPEATS = 3
 _SYNC_WAIT_S = 0.1
 _ZERO_GAP_S = 0.001
 _ZERO_SETTLE_S = 0.01
+# `tare_from_recent` takes the records the last reads returned when they are the present state: the newest at most
+# this old, and all of them read at a control loop's pace or faster (at least every this many seconds on average).
+RECENT_TARE_AGE_S = 0.1
+RECENT_TARE_SPACING_S = 0.02
 
 
 @dataclass(frozen=True)
@@ -94,6 +99,8 @@ class WacohSensor(ForceSensor):
         self._latest: _Sample | None = None
         self._last_seq = 0
         self._link_error: str | None = None
+        # The raw records the reads returned, newest last (`tare_from_recent`); emptied by a failed read.
+        self._recent: collections.deque[_Sample] = collections.deque(maxlen=max(config.tare_samples, 1))
 
     # ------------------------------------------------------------------ diagnostics
     @property
@@ -220,10 +227,12 @@ class WacohSensor(ForceSensor):
     def _read(self) -> Wrench:
         sample = self._next_sample()
         if sample is None:
+            self._recent.clear()
             self._note_failure()
             nan = np.full(3, np.nan)
             return Wrench(t=time.monotonic(), force=nan, torque=nan.copy())
         self.consecutive_failures = 0
+        self._recent.append(sample)
         return self._to_wrench(sample)
 
     def _next_sample(self) -> _Sample | None:
@@ -435,6 +444,27 @@ class WacohSensor(ForceSensor):
                 self._last_seq = self._latest.seq
 
     # ------------------------------------------------------------------ tare
+    def tare_from_recent(self, samples: int = 50) -> bool:
+        """The software tare over the last `samples` records the reads returned, when they are recent (the newest
+        at most RECENT_TARE_AGE_S old, read at least every RECENT_TARE_SPACING_S on average, no failed read and no
+        saturated channel among them): no request and no wait, so the control loop is not held while a tare
+        collects (50 polls on a USB adapter take longer than the robot side waits for the host).  False
+        otherwise, and with `tare: sensor` (the sensor zeroes itself)."""
+        super().tare_from_recent(samples)
+        if self.config.tare == "sensor" or not 1 <= samples <= len(self._recent):
+            return False
+        recent = list(self._recent)[-samples:]
+        now = time.monotonic()
+        if now - recent[-1].t > RECENT_TARE_AGE_S or recent[-1].t - recent[0].t > RECENT_TARE_SPACING_S * samples:
+            return False
+        counts = np.array([r.counts for r in recent])
+        if np.any((counts <= 0) | (counts >= RAW_MAX)):
+            return False  # `tare` reads afresh and says which channel is saturated
+        self._zero = counts.mean(axis=0)
+        log.info("WACOH sensor on %s: software tare over the last %d records read, zero %s", self.config.port,
+                 samples, np.round(self._zero, 1).tolist())
+        return True
+
     def _tare(self, samples: int) -> None:
         """`tare: sensor` sends `O` three times; `tare: software` averages `samples` records."""
         if self.config.tare == "sensor":
