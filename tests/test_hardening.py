@@ -301,6 +301,18 @@ def test_a_recording_that_cannot_be_written_is_a_recording_error(tmp_path, monke
     assert rec.closed and not list((tmp_path / "run" / "log").glob("*.parquet"))
 
 
+def test_a_column_of_mixed_kinds_fails_the_recording_not_the_writer(tmp_path):
+    from cell.data.recorder import Recorder
+    from drivers.errors import RecordingError
+
+    rec = Recorder(tmp_path / "run", chunk_rows=2)
+    rec.append({"t": 0.0, "state": "wipe"})
+    rec.append({"t": 0.1, "state": 3.5})
+    with pytest.raises(RecordingError, match="part-00000.parquet: cannot write the step log"):
+        rec.close()
+    assert rec.closed
+
+
 def test_no_part_after_one_that_failed_is_written(tmp_path, monkeypatch):
     """A log with a hole in it would read as a jump in time: after a failed part, later ones are refused."""
     import pyarrow.parquet as pq

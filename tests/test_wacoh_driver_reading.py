@@ -68,17 +68,18 @@ def test_software_tare_removes_a_655_lsb_offset(
 def test_a_control_loop_tares_on_the_records_it_already_read(
     make_emulator: EmulatorFactory, sensors: list[WacohSensor], mode: str
 ) -> None:
-    """`tare_from_recent` zeroes at the mean of the reads just taken, with no request of its own (the loop is not
-    held while a tare collects); reads too few, too old or a failed one in between: it declines."""
+    """`tare_from_recent` zeroes at the mean of the reads of the last moments, with no request of its own (the
+    loop is not held while a tare collects); too few of them, too old or a failed one in between: it declines."""
     from cell.sensing.ft_source import SensorForceSource
+    from drivers.wacoh.driver import RECENT_TARE_AGE_S, RECENT_TARE_MIN, RECENT_TARE_WINDOW_S
 
     source = Source()
     emulator = make_emulator(source, offset_lsb=BIG_OFFSET, noise=0.0)
     sensor = connect(sensors, emulator, tare="software", mode=mode, tare_samples=20, timeout_s=SLACK_TIMEOUT_S)
     assert not sensor.tare_from_recent(20)  # nothing read yet
-    for _ in range(19):
+    for _ in range(RECENT_TARE_MIN - 1):
         sensor.read()
-    assert not sensor.tare_from_recent(20)  # one short
+    assert not sensor.tare_from_recent(20)  # one short of the fewest it averages
     sensor.read()
     requests = emulator.commands.get("R", 0)
     assert sensor.tare_from_recent(20)
@@ -87,10 +88,16 @@ def test_a_control_loop_tares_on_the_records_it_already_read(
     source.value = np.array([10.0, -20.0, 30.0, 0.5, -0.5, 0.25])
     time.sleep(0.003 if mode == "stream" else 0.0)
     assert close_to(sensor.read().vector, source.value, 1.0)
-    # Records read longer ago than a control loop's last periods are not the present state.
+    # Only the reads of the last moments count: those before a pause are not the present state.
     for _ in range(20):
         sensor.read()
-    time.sleep(0.15)
+    time.sleep(RECENT_TARE_WINDOW_S + 0.05)
+    for _ in range(RECENT_TARE_MIN - 1):
+        sensor.read()
+    assert not sensor.tare_from_recent(20)
+    # Nor are reads the loop stopped taking a while ago.
+    sensor.read()
+    time.sleep(RECENT_TARE_AGE_S + 0.05)
     assert not sensor.tare_from_recent(20)
     # The control loop's source: declined, it tares with fresh records (here under the load: it reads zero).
     SensorForceSource(sensor, 20).rebias()

@@ -132,6 +132,9 @@ class Recorder:
         except OSError as exc:
             self._failure = RecordingError(f"{final}: cannot write the step log: {exc.strerror or exc}")
             raise self._failure from None
+        except pa.ArrowException as exc:  # a column whose rows hold values of different kinds
+            self._failure = RecordingError(f"{final}: cannot write the step log: {type(exc).__name__}: {exc}")
+            raise self._failure from None
         except RecordingError as exc:
             self._failure = exc
             raise

@@ -46,10 +46,12 @@ _ZERO_REPEATS = 3
 _SYNC_WAIT_S = 0.1
 _ZERO_GAP_S = 0.001
 _ZERO_SETTLE_S = 0.01
-# `tare_from_recent` takes the records the last reads returned when they are the present state: the newest at most
-# this old, and all of them read at a control loop's pace or faster (at least every this many seconds on average).
+# `tare_from_recent` averages the records the reads returned over this last stretch of time (a task's tare state
+# holds the arm still for longer: the wipe's 0.3 s, the peg's 1.2 s), when there are at least RECENT_TARE_MIN of
+# them and the newest is at most RECENT_TARE_AGE_S old.
+RECENT_TARE_WINDOW_S = 0.2
+RECENT_TARE_MIN = 10
 RECENT_TARE_AGE_S = 0.1
-RECENT_TARE_SPACING_S = 0.02
 
 
 @dataclass(frozen=True)
@@ -117,11 +119,6 @@ class WacohSensor(ForceSensor):
         """The USB-serial adapter's latency timer (ms), where the system shows it: after `connect`, the one the
         low-latency request left (1 ms on an FTDI adapter that took it)."""
         return latency_timer_ms(self.config.port)
-
-    @property
-    def low_latency(self) -> bool:
-        """Whether the port took the low-latency request when it was opened."""
-        return self._link.low_latency
 
     def counters(self) -> dict[str, int]:
         with self._cond:
@@ -445,24 +442,24 @@ class WacohSensor(ForceSensor):
 
     # ------------------------------------------------------------------ tare
     def tare_from_recent(self, samples: int = 50) -> bool:
-        """The software tare over the last `samples` records the reads returned, when they are recent (the newest
-        at most RECENT_TARE_AGE_S old, read at least every RECENT_TARE_SPACING_S on average, no failed read and no
-        saturated channel among them): no request and no wait, so the control loop is not held while a tare
-        collects (50 polls on a USB adapter take longer than the robot side waits for the host).  False
-        otherwise, and with `tare: sensor` (the sensor zeroes itself)."""
+        """The software tare over the records the reads returned in the last RECENT_TARE_WINDOW_S (at most `samples`
+        of them, at least RECENT_TARE_MIN, the newest at most RECENT_TARE_AGE_S old, none failed or saturated in
+        between): no request and no wait, so the control loop is not held while a tare collects (50 polls on a USB
+        adapter take longer than the robot side waits for the host).  False otherwise, and with `tare: sensor`
+        (the sensor zeroes itself)."""
         super().tare_from_recent(samples)
-        if self.config.tare == "sensor" or not 1 <= samples <= len(self._recent):
+        if self.config.tare == "sensor" or not self._recent:
             return False
-        recent = list(self._recent)[-samples:]
-        now = time.monotonic()
-        if now - recent[-1].t > RECENT_TARE_AGE_S or recent[-1].t - recent[0].t > RECENT_TARE_SPACING_S * samples:
+        newest = self._recent[-1].t
+        recent = [r for r in self._recent if r.t >= newest - RECENT_TARE_WINDOW_S][-max(samples, 1):]
+        if len(recent) < min(samples, RECENT_TARE_MIN) or time.monotonic() - newest > RECENT_TARE_AGE_S:
             return False
         counts = np.array([r.counts for r in recent])
         if np.any((counts <= 0) | (counts >= RAW_MAX)):
             return False  # `tare` reads afresh and says which channel is saturated
         self._zero = counts.mean(axis=0)
         log.info("WACOH sensor on %s: software tare over the last %d records read, zero %s", self.config.port,
-                 samples, np.round(self._zero, 1).tolist())
+                 len(recent), np.round(self._zero, 1).tolist())
         return True
 
     def _tare(self, samples: int) -> None:
