@@ -56,6 +56,12 @@ class ArmStatus:
 LIMIT_TOLERANCE_RAD = 0.05
 
 
+def vector_text(values: object) -> str:
+    """A vector for a one-line message: every element, on one line (numpy's repr breaks long arrays)."""
+    arr = np.asarray(values, dtype=float).ravel()
+    return "[" + ", ".join(f"{v:.6g}" for v in arr.tolist()) + "]"
+
+
 @dataclass(frozen=True)
 class ArmState:
     """One timestamped sample of the arm: joint positions, speeds and measured motor torques."""
@@ -224,7 +230,7 @@ class Arm(ABC):
                 value = getattr(state, name)
                 # (Array methods, not numpy's dispatching functions: this runs every control period.)
                 if value.shape != (self.n_joints,) or not np.isfinite(value).all():
-                    reason = f"arm state field {name} is invalid: {value!r}"
+                    reason = f"arm state field {name} is invalid: {vector_text(value)}"
                     self.fault(reason)
                     raise DriverError(reason)
             # A position outside the joint's range is a wrong reading (or a wrong limit), never a
@@ -256,7 +262,7 @@ class Arm(ABC):
                     f"command refused: target has shape {requested.shape}, expected ({self.n_joints},)"
                 )
             if not np.isfinite(requested).all():
-                raise CommandRejectedError(f"command refused: non-finite target {requested!r}")
+                raise CommandRejectedError(f"command refused: non-finite target {vector_text(requested)}")
             # Clipped as np.clip does (a finite target), without its dispatch: this runs every control period.
             q = np.minimum(np.maximum(requested, self.limits.lower), self.limits.upper)
             assert self._last_sent is not None

@@ -111,6 +111,7 @@ class TM5Emulator(EmulatorLoop):
         self.project_running = True
         self.paused = False
         self.cycles = 0
+        self.stop_coil_writes: list[bool] = []  # every value written to coil 7105, in order
         self._requested_port = port
         self._port: int | None = None
         self._table = ControllerTable()
@@ -183,6 +184,10 @@ class TM5Emulator(EmulatorLoop):
         until = math.inf if seconds is None else time.monotonic() + seconds
         self._set_faults(exception_code=int(code), exceptions_until=until)
 
+    def serve_documented_inputs_only(self, on: bool = True) -> None:
+        """Refuse (exception 2) a discrete-input read that covers the undocumented 7203, 7205-7207."""
+        self._table.documented_inputs_only = on
+
     def press_estop(self, seconds: float | None = None) -> None:
         """The E-stop input reads pressed for `seconds` (None: until cleared)."""
         self._set_faults(estop_until=math.inf if seconds is None else time.monotonic() + seconds)
@@ -233,7 +238,8 @@ class TM5Emulator(EmulatorLoop):
         await self._close_server()
 
     async def _listen(self, port: int) -> None:
-        self._server, self._port = await start_server(self._device, self.host, port)
+        self._server, self._port = await start_server(self._device, self.host, port,
+                                                      trace_pdu=self._table.screen_request)
 
     async def _close_server(self) -> None:
         server, self._server = self._server, None
@@ -341,6 +347,8 @@ class TM5Emulator(EmulatorLoop):
             return None
         if function_code in (1, 5, 15):
             if values:
+                if address <= COIL_STOP < address + len(values):
+                    self.stop_coil_writes.append(bool(values[COIL_STOP - address]))
                 self._on_coils(address, [bool(v) for v in values])
             registers[COIL_PLAY_PAUSE // 16 - start] = 0  # momentary: coils read back as released
         elif values and function_code in _WRITE_HOLDING:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from pymodbus.pdu import ModbusPDU
 from pymodbus.server import ModbusBaseServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -17,6 +19,7 @@ from drivers.tm5.registers import (
     DI_FIRST,
     DI_PAUSED,
     DI_RUNNING,
+    DI_RUNS,
     IR_COUNT,
     IR_FIRST,
     IR_FLANGE_POSE,
@@ -29,6 +32,7 @@ from drivers.tm5.registers import (
 from sim.plant_api import PlantLike
 
 DI_LINK = DI_FIRST  # 7200: robot link up
+_DOCUMENTED_INPUTS = frozenset(a + i for a, n in DI_RUNS for i in range(n))
 # pymodbus' non-shared bit blocks address bit b as register b // 16, bit b % 16: keep the base aligned.
 assert DI_FIRST % 16 == 0
 
@@ -41,6 +45,18 @@ class ControllerTable:
     def __init__(self) -> None:
         self.ir = [0] * IR_COUNT
         self.di = [False] * DI_COUNT
+        # Serve the documented discrete inputs alone (a controller without 7203, 7205-7207): a read that
+        # covers another address gets exception 2, illegal data address.
+        self.documented_inputs_only = False
+
+    def screen_request(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
+        """pymodbus' `trace_pdu` hook: a discrete-input read that covers an undocumented address, while only the
+        documented ones are served, is pointed outside the table (pymodbus then answers exception 2, illegal
+        data address).  The access hook cannot do this: it sees a bit read's count in whole registers."""
+        if (not sending and self.documented_inputs_only and pdu.function_code == 2
+                and any(a not in _DOCUMENTED_INPUTS for a in range(pdu.address, pdu.address + pdu.count))):
+            pdu.address = 0
+        return pdu
 
     def publish(self, plant: PlantLike, q: np.ndarray, *, error: bool, running: bool, paused: bool, estop: bool,
                 joint_offset_deg: float = 0.0) -> None:
@@ -89,10 +105,11 @@ def table_device(table: ControllerTable, action: Any) -> SimDevice:
                      action=action)
 
 
-async def start_server(device: SimDevice, host: str, port: int) -> tuple[ModbusTcpServer, int]:
+async def start_server(device: SimDevice, host: str, port: int,
+                       trace_pdu: Callable[[bool, ModbusPDU], ModbusPDU] | None = None) -> tuple[ModbusTcpServer, int]:
     """Serve `device` on `host:port` in the running loop; (server, bound port).  RuntimeError when the address
-    cannot be bound."""
-    server = ModbusTcpServer(device, address=(host, port))
+    cannot be bound.  `trace_pdu`: pymodbus' hook on every request and reply."""
+    server = ModbusTcpServer(device, address=(host, port), trace_pdu=trace_pdu)
     await server.serve_forever(background=True)
     listener: Any = server.transport
     return server, int(listener.sockets[0].getsockname()[1])

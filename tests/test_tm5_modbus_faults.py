@@ -270,3 +270,70 @@ def test_a_lost_link_is_reported_within_one_timeout_every_time(emulator: TM5Emul
             emulator.clear_faults()
             arm.arm()
         assert counted == [1] * 6, f"links used per lost-link read: {counted}"
+
+
+@pytest.mark.timeout(20)
+def test_a_state_read_slower_than_two_periods_is_stale(emulator: TM5Emulator, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Each transaction answers within its own timeout, but three of them in a row would leave the loop on data
+    # several periods old.  The driver's clock is a fake one moved by each transaction's (pretended) length.
+    arm = make_arm(emulator, timeout_s=0.01)  # the budget: max(2 periods, timeout_s) = 16 ms
+    with arm:
+        arm.arm()
+        clock = _FakeClock(time.monotonic())
+        monkeypatch.setattr(tm5_modbus, "time", clock)
+        real_call = arm._call
+        spent: list[float] = []
+
+        def slow_call(*args: object, **kwargs: object) -> object:
+            clock.now += spent[-1]
+            return real_call(*args, **kwargs)  # type: ignore[arg-type]
+
+        monkeypatch.setattr(arm, "_call", slow_call)
+        spent.append(0.005)  # 5 ms a transaction: 10 ms before the last read, under the budget
+        arm.read_state()
+        assert arm.lifecycle is Lifecycle.ARMED
+        spent.append(0.009)  # 9 ms: 18 ms spent before the robot-side block
+        with pytest.raises(StaleDataError, match=r"took 18\.0 ms before the robot-side block \(limit 16\.0 ms"):
+            arm.read_state()
+        assert arm.lifecycle is Lifecycle.FAULT
+        assert "\n" not in str(arm.fault_reason)
+
+
+@pytest.mark.timeout(20)
+def test_a_controller_without_the_undocumented_inputs_is_read_input_by_input(
+        arm: TM5ModbusArm, emulator: TM5Emulator, caplog: pytest.LogCaptureFixture) -> None:
+    emulator.serve_documented_inputs_only()
+    arm.arm()
+    with caplog.at_level(logging.WARNING, logger="drivers.tm5.modbus"):
+        assert arm.read_state().status.ok  # refused as a block once, then read run by run
+        emulator.press_estop()
+        wait_for(lambda: arm.read_state().status.estop, what="input 7208 read on its own")
+    assert arm.lifecycle is Lifecycle.FAULT  # an E-stop faults an armed arm, as with the block read
+    refusals = [r for r in caplog.records if "refuses discrete inputs" in r.getMessage()]
+    assert len(refusals) == 1 and "7200-7202, 7204, 7208" in refusals[0].getMessage()
+    # Any other exception reply to the block is still an error.
+    emulator.clear_faults()
+    fresh = make_arm(emulator)
+    with fresh:
+        emulator.serve_documented_inputs_only(False)
+        emulator.inject_exceptions(code=ExcCodes.DEVICE_BUSY)
+        with pytest.raises(ProtocolError, match="exception reply code 6"):
+            fresh.read_state()
+
+
+@pytest.mark.timeout(20)
+def test_the_stop_coil_is_pulsed(emulator: TM5Emulator) -> None:
+    arm = make_arm(emulator, stop_coil=True)
+    with arm:
+        arm.arm()
+        arm.stop()
+        assert emulator.stop_coil_writes == [True, False]  # set, then released: a rising edge for the next stop
+    assert emulator.stop_coil_writes == [True, False] * 2  # disconnecting stops again, with its own edge
+
+
+def test_a_non_finite_value_in_a_message_stays_on_one_line(arm: TM5ModbusArm) -> None:
+    arm.arm()
+    target = np.array([0.1, np.nan, 0.3, 1e-9, -2.5, 1234567.0])
+    with pytest.raises(DriverError) as info:
+        arm.send_target(target)
+    assert "\n" not in str(info.value) and "nan" in str(info.value)

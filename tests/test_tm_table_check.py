@@ -180,3 +180,17 @@ def test_status_json_carries_the_cross_check(emulator: TMEthernetEmulator, tmp_p
     cross = out["modbus_cross_check"]
     assert cross["agrees"] is True and cross["max_joint_diff_deg"] < 1e-3
     assert cross["endpoint"] == f"127.0.0.1:{emulator.modbus_port}"
+
+
+def test_the_reader_reads_the_documented_inputs_only() -> None:
+    # A controller that serves 7200-7202, 7204 and 7208 alone (exception 2 for a read over 7203, 7205-7207).
+    from sim.tm5_emulator import TM5Emulator
+    from tests.tm5_fixtures import Q0 as TM5_Q0
+    from tests.tm5_fixtures import FakePlant, wait_for
+
+    with TM5Emulator(FakePlant(TM5_Q0)) as emulator:
+        emulator.serve_documented_inputs_only()
+        table = read_modbus_table("127.0.0.1", emulator.port, 1.0)
+        assert table.project_running and not table.estop and not table.error
+        emulator.press_estop()
+        wait_for(lambda: read_modbus_table("127.0.0.1", emulator.port, 1.0).estop, what="input 7208 read alone")

@@ -15,7 +15,7 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from pymodbus.pdu import ModbusPDU
 
 from drivers.errors import ConfigError, DriverError, LifecycleError, LinkLostError, ProtocolError, StaleDataError
-from drivers.interfaces import Arm, ArmState, ArmStatus, JointLimits, Lifecycle
+from drivers.interfaces import Arm, ArmState, ArmStatus, JointLimits, Lifecycle, vector_text
 from drivers.tm5.config import TM5ModbusConfig
 from drivers.tm5.contract import RobotSideStatus, token_text
 from drivers.tm5.registers import (
@@ -26,6 +26,7 @@ from drivers.tm5.registers import (
     DI_FIRST,
     DI_PAUSED,
     DI_RUNNING,
+    DI_RUNS,
     IR_COUNT,
     IR_FIRST,
     IR_FLANGE_POSE,
@@ -46,6 +47,20 @@ from drivers.tm5.registers import (
 log = logging.getLogger(__name__)
 
 _ROBOT_FLAGS_MASK = int(RobotFlags.WATCHDOG | RobotFlags.EXECUTING | RobotFlags.HELD)  # other bits: reserved
+ILLEGAL_DATA_ADDRESS = 2  # Modbus exception code: the server has no such address
+
+# A state read (three transactions) that takes longer than this many control periods (or than `timeout_s`, when
+# that is longer) ends the cycle as stale: each transaction has its own timeout, but three slow ones in a row
+# would keep the loop on data several periods old.
+READ_BUDGET_PERIODS = 2.0
+
+
+class ModbusExceptionReply(ProtocolError):
+    """The controller answered a request with a Modbus exception (`code`)."""
+
+    def __init__(self, message: str, code: int | None) -> None:
+        super().__init__(message)
+        self.code = code
 
 
 class TM5ModbusArm(Arm):
@@ -53,7 +68,10 @@ class TM5ModbusArm(Arm):
 
     Per cycle: `read_state` = 3 reads (input registers 7001-7036, discrete inputs 7200-7208, the robot->host
     user block); `send_target` = 1 write (the host->robot user block).  Units are converted here only.
-    The link is a sync pymodbus client with `retries=0`, so a dead link costs at most `timeout_s`.
+    A controller that refuses the discrete-input block (its undocumented addresses 7203, 7205-7207) is read
+    on the documented addresses alone from then on (three more reads a cycle).
+    The link is a sync pymodbus client with `retries=0`, so a dead link costs at most `timeout_s`, and a state
+    read as a whole at most READ_BUDGET_PERIODS control periods (then StaleDataError).
     Every write carries this driver's random `token`: the robot side acts on one token at a time (the
     control lease, renewed by every write), so a second host cannot arm an arm another one drives.
     """
@@ -82,6 +100,8 @@ class TM5ModbusArm(Arm):
         self._tool_pose: tuple[np.ndarray, np.ndarray] | None = None
         self._robot_side: RobotSideStatus | None = None
         self._warned_untested = False
+        self._di_by_runs = False  # the controller refused the block read: read the documented runs
+        self._read_budget_s = max(READ_BUDGET_PERIODS * dt, config.timeout_s)
 
     # ----------------------------------------------------------------------------- public extras
     @property
@@ -220,13 +240,23 @@ class TM5ModbusArm(Arm):
         if self.config.stop_coil:
             self._call("write coil", COIL_STOP, lambda c, dev: c.write_coil(COIL_STOP, True, device_id=dev),
                        may_reconnect=retry)
+            # A pulse: the coil released again, so that a controller acting on its rising edge sees the next
+            # stop too.  The stop itself has gone out; a link failing now is reported by the next cycle.
+            try:
+                self._call("release coil", COIL_STOP,
+                           lambda c, dev: c.write_coil(COIL_STOP, False, device_id=dev), may_reconnect=False)
+            except DriverError as exc:
+                log.warning("TM5 %s: stop coil %d set, its release failed: %s", self.endpoint, COIL_STOP, exc)
         self._stop_failed = False
 
     # ----------------------------------------------------------------------------- wire: data
     def _read_state(self) -> ArmState:
         layout = self._layout
+        t0 = time.monotonic()
         ir = self._read_registers("input", IR_FIRST, IR_COUNT)
-        di = self._read_bits(DI_FIRST, DI_COUNT)
+        self._within_budget(t0, "the discrete inputs")
+        di = self._read_status_inputs(t0)
+        self._within_budget(t0, "the robot-side block")
         rb_start, rb_count = layout.robot_block
         hr = self._read_registers("holding", rb_start, rb_count)
         t = time.monotonic()
@@ -259,6 +289,36 @@ class TM5ModbusArm(Arm):
         self._write_host_block(Command.TRACK, q, may_reconnect=False)
 
     # ----------------------------------------------------------------------------- helpers
+    def _within_budget(self, t0: float, next_read: str) -> None:
+        """StaleDataError when the state read begun at `t0` has used its budget before reading `next_read`."""
+        spent = time.monotonic() - t0
+        if spent > self._read_budget_s:
+            raise StaleDataError(
+                f"TM5 {self.endpoint}: reading the state took {spent * 1000:.1f} ms before {next_read} (limit "
+                f"{self._read_budget_s * 1000:.1f} ms, {READ_BUDGET_PERIODS:g} control periods): the link is too "
+                "slow for the control period")
+
+    def _read_status_inputs(self, t0: float) -> list[bool]:
+        """Discrete inputs 7200-7208: one block read, or the documented runs once the controller refused it
+        (the undocumented addresses then read False)."""
+        if not self._di_by_runs:
+            try:
+                return self._read_bits(DI_FIRST, DI_COUNT)
+            except ModbusExceptionReply as exc:
+                if exc.code != ILLEGAL_DATA_ADDRESS:
+                    raise
+                self._di_by_runs = True
+                log.warning("TM5 %s: the controller refuses discrete inputs %d-%d as one block (illegal data "
+                            "address): reading the documented ones (%s) apiece from now on", self.endpoint,
+                            DI_FIRST, DI_FIRST + DI_COUNT - 1,
+                            ", ".join(f"{a}-{a + n - 1}" if n > 1 else str(a) for a, n in DI_RUNS))
+        bits = [False] * DI_COUNT
+        for i, (address, count) in enumerate(DI_RUNS):
+            if i:
+                self._within_budget(t0, f"discrete input {address}")
+            bits[address - DI_FIRST:address - DI_FIRST + count] = self._read_bits(address, count)
+        return bits
+
     def _read_pose(self, address: int, what: str) -> tuple[np.ndarray, np.ndarray]:
         with self._lock:
             if self.lifecycle is Lifecycle.DISCONNECTED:
@@ -274,7 +334,8 @@ class TM5ModbusArm(Arm):
 
     def _finite(self, values: np.ndarray, what: str, address: int) -> np.ndarray:
         if not np.all(np.isfinite(values)):
-            raise ProtocolError(f"TM5 {self.endpoint}: {what} at {address} holds non-finite values {values!r}")
+            raise ProtocolError(f"TM5 {self.endpoint}: {what} at {address} holds non-finite values "
+                                f"{vector_text(values)}")
         return values
 
     def _decode_robot_block(self, hr: list[int], start: int) -> RobotSideStatus:
@@ -382,8 +443,8 @@ class TM5ModbusArm(Arm):
             raise self._link_lost(f"{op} {address}: no reply")
         if rr.isError():
             code = getattr(rr, "exception_code", None)
-            raise ProtocolError(f"TM5 {self.endpoint}: {op} {address}: Modbus exception reply code {code} "
-                                f"({_exception_name(code)})")
+            raise ModbusExceptionReply(f"TM5 {self.endpoint}: {op} {address}: Modbus exception reply code {code} "
+                                       f"({_exception_name(code)})", code if isinstance(code, int) else None)
         return rr
 
     def _require_link(self, may_reconnect: bool) -> ModbusTcpClient:

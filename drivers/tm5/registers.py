@@ -18,6 +18,9 @@ IR_TOOL_POSE = 7025  # X, Y, Z [mm], Rx, Ry, Rz [deg]
 IR_FIRST, IR_COUNT = 7001, 36  # the three blocks are contiguous: one read per cycle
 DI_FIRST, DI_COUNT = 7200, 9  # 7200 link, 7201 error, 7202 running, 7204 paused, 7208 E-stop
 DI_ERROR, DI_RUNNING, DI_PAUSED, DI_ESTOP = 7201, 7202, 7204, 7208
+# The documented inputs as runs of consecutive addresses (first, count).  7203 and 7205-7207 lie between them
+# undocumented: a controller may refuse a read that covers them (exception 2, illegal data address).
+DI_RUNS: tuple[tuple[int, int], ...] = ((7200, 3), (7204, 1), (7208, 1))
 COIL_PLAY_PAUSE, COIL_STOP = 7104, 7105
 USER_AREA_FIRST, USER_AREA_LAST = 9000, 9999
 MAX_READ_REGISTERS, MAX_WRITE_REGISTERS = 125, 123  # Modbus PDU limits for FC03/04 and FC16

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import socket
 import time
@@ -25,6 +26,7 @@ from drivers.tm5.registers import (
     DI_ESTOP,
     DI_FIRST,
     DI_RUNNING,
+    DI_RUNS,
     IR_JOINTS,
     N_JOINTS,
     regs_to_floats,
@@ -114,8 +116,9 @@ class CrossCheck:
 
 
 def read_modbus_table(host: str, port: int, timeout_s: float) -> ModbusTable:
-    """Connect, read input registers 7013-7024 and discrete inputs 7200-7208, close.  Each step is bounded by
-    `timeout_s`; LinkLostError (no server, no reply) or ProtocolError (exception reply, bad data), one line."""
+    """Connect, read input registers 7013-7024 and the documented discrete inputs (7200-7202, 7204, 7208),
+    close.  Each step is bounded by `timeout_s`; LinkLostError (no server, no reply) or ProtocolError (exception
+    reply, bad data), one line."""
     endpoint = f"{host}:{port}"
     try:
         sock = socket.create_connection((host, port), timeout=timeout_s)
@@ -128,14 +131,21 @@ def read_modbus_table(host: str, port: int, timeout_s: float) -> ModbusTable:
     try:
         regs = _call(client, endpoint, f"read input registers {IR_JOINTS}", timeout_s,
                      lambda c: c.read_input_registers(IR_JOINTS, count=2 * N_JOINTS, device_id=UNIT_ID)).registers
-        bits = _call(client, endpoint, f"read discrete inputs {DI_FIRST}", timeout_s,
-                     lambda c: c.read_discrete_inputs(DI_FIRST, count=DI_COUNT, device_id=UNIT_ID)).bits
+        # The documented inputs only, run by run: a controller may refuse a read over the undocumented ones.
+        bits = [False] * DI_COUNT
+        for address, count in DI_RUNS:
+            got = _call(client, endpoint, f"read discrete inputs {address}", timeout_s,
+                        functools.partial(_read_inputs, address=address, count=count)).bits
+            if len(got) < count:
+                raise ProtocolError(f"TM Modbus table {endpoint}: asked {count} discrete inputs at {address}, "
+                                    f"got {len(got)}")
+            bits[address - DI_FIRST:address - DI_FIRST + count] = [bool(b) for b in got[:count]]
         t = time.monotonic()
     finally:
         client.close()
-    if len(regs) != 2 * N_JOINTS or len(bits) < DI_COUNT:
-        raise ProtocolError(f"TM Modbus table {endpoint}: asked {2 * N_JOINTS} registers and {DI_COUNT} inputs, "
-                            f"got {len(regs)} and {len(bits)}")
+    if len(regs) != 2 * N_JOINTS:
+        raise ProtocolError(f"TM Modbus table {endpoint}: asked {2 * N_JOINTS} registers at {IR_JOINTS}, "
+                            f"got {len(regs)}")
     q_deg = regs_to_floats(regs)
     if not np.all(np.isfinite(q_deg)):
         raise ProtocolError(f"TM Modbus table {endpoint}: joint angles at {IR_JOINTS} hold non-finite values "
@@ -222,6 +232,10 @@ def _sample(arm: SlaveTables) -> Sample:
     if table is None:
         raise LinkLostError(f"TM {arm.endpoint}: no Ethernet Slave table to cross-check")
     return table, state.t
+
+
+def _read_inputs(client: ModbusTcpClient, address: int, count: int) -> ModbusPDU:
+    return client.read_discrete_inputs(address, count=count, device_id=UNIT_ID)
 
 
 def _call(client: ModbusTcpClient, endpoint: str, op: str, timeout_s: float,
