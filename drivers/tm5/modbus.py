@@ -7,7 +7,6 @@ import secrets
 import socket
 import time
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 from pymodbus.client import ModbusTcpClient
@@ -18,6 +17,7 @@ from drivers.errors import ConfigError, DriverError, LifecycleError, LinkLostErr
 from drivers.interfaces import Arm, ArmState, ArmStatus, JointLimits, Lifecycle, vector_text
 from drivers.tm5.config import TM5ModbusConfig
 from drivers.tm5.contract import RobotSideStatus, token_text
+from drivers.tm5.modbus_replies import ILLEGAL_DATA_ADDRESS, ModbusExceptionReply, exception_name, first_line
 from drivers.tm5.registers import (
     COIL_STOP,
     DI_COUNT,
@@ -47,20 +47,11 @@ from drivers.tm5.registers import (
 log = logging.getLogger(__name__)
 
 _ROBOT_FLAGS_MASK = int(RobotFlags.WATCHDOG | RobotFlags.EXECUTING | RobotFlags.HELD)  # other bits: reserved
-ILLEGAL_DATA_ADDRESS = 2  # Modbus exception code: the server has no such address
 
 # A state read (three transactions) that takes longer than this many control periods (or than `timeout_s`, when
 # that is longer) ends the cycle as stale: each transaction has its own timeout, but three slow ones in a row
 # would keep the loop on data several periods old.
 READ_BUDGET_PERIODS = 2.0
-
-
-class ModbusExceptionReply(ProtocolError):
-    """The controller answered a request with a Modbus exception (`code`)."""
-
-    def __init__(self, message: str, code: int | None) -> None:
-        super().__init__(message)
-        self.code = code
 
 
 class TM5ModbusArm(Arm):
@@ -432,19 +423,19 @@ class TM5ModbusArm(Arm):
         try:
             rr = fn(client, self.config.unit_id)
         except ConnectionException as exc:
-            raise self._link_lost(f"{op} {address}: connection lost ({_first_line(exc)})") from None
+            raise self._link_lost(f"{op} {address}: connection lost ({first_line(exc)})") from None
         except ModbusIOException as exc:
             # No (matching) reply in time.  Close the socket: a late reply must not be taken for the next one.
             raise self._link_lost(f"{op} {address}: no valid reply within {self.config.timeout_s * 1000:.0f} ms "
-                                  f"({_first_line(exc)})") from None
+                                  f"({first_line(exc)})") from None
         except (ModbusException, OSError) as exc:
-            raise self._link_lost(f"{op} {address}: {type(exc).__name__}: {_first_line(exc)}") from None
+            raise self._link_lost(f"{op} {address}: {type(exc).__name__}: {first_line(exc)}") from None
         if rr is None:
             raise self._link_lost(f"{op} {address}: no reply")
         if rr.isError():
             code = getattr(rr, "exception_code", None)
             raise ModbusExceptionReply(f"TM5 {self.endpoint}: {op} {address}: Modbus exception reply code {code} "
-                                       f"({_exception_name(code)})", code if isinstance(code, int) else None)
+                                       f"({exception_name(code)})", code if isinstance(code, int) else None)
         return rr
 
     def _require_link(self, may_reconnect: bool) -> ModbusTcpClient:
@@ -501,18 +492,4 @@ class TM5ModbusArm(Arm):
         self._down_reason = reason
         if self._client is not None:
             self._client.close()
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
-
-
-_EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
-                    4: "server device failure", 5: "acknowledge", 6: "server device busy",
-                    8: "memory parity error", 10: "gateway path unavailable", 11: "gateway target no response"}
-
-
-def _exception_name(code: Any) -> str:
-    return _EXCEPTION_NAMES.get(code, "unknown") if isinstance(code, int) else "unknown"
 

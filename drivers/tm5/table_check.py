@@ -19,7 +19,7 @@ from drivers.errors import LifecycleError, LinkLostError, ProtocolError
 from drivers.interfaces import ArmState
 from drivers.tm5.ethernet_config import TMEthernetConfig
 from drivers.tm5.ethernet_slave import SlaveState
-from drivers.tm5.modbus import _exception_name, _first_line
+from drivers.tm5.modbus_replies import exception_name, first_line
 from drivers.tm5.registers import (
     DI_COUNT,
     DI_ERROR,
@@ -124,7 +124,7 @@ def read_modbus_table(host: str, port: int, timeout_s: float) -> ModbusTable:
         sock = socket.create_connection((host, port), timeout=timeout_s)
     except OSError as exc:
         raise LinkLostError(f"TM Modbus table {endpoint}: no Modbus/TCP server answers "
-                            f"({exc.strerror or _first_line(exc)})") from None
+                            f"({exc.strerror or first_line(exc)})") from None
     # retries=0: one try per request, so an unanswered one costs timeout_s, not several.
     client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0, name="tm5-table")
     client.socket = sock  # the connection made above, whose failure names its reason (connect() only logs it)
@@ -245,12 +245,12 @@ def _call(client: ModbusTcpClient, endpoint: str, op: str, timeout_s: float,
     except ModbusIOException:
         raise LinkLostError(f"TM Modbus table {endpoint}: {op}: no reply within {timeout_s * 1000:.0f} ms") from None
     except (ModbusException, OSError) as exc:
-        raise LinkLostError(f"TM Modbus table {endpoint}: {op}: no valid reply ({_first_line(exc)})") from None
+        raise LinkLostError(f"TM Modbus table {endpoint}: {op}: no valid reply ({first_line(exc)})") from None
     if rr is None:
         raise LinkLostError(f"TM Modbus table {endpoint}: {op}: no reply")
     if rr.isError():
         code = getattr(rr, "exception_code", None)
         raise ProtocolError(f"TM Modbus table {endpoint}: {op}: Modbus exception reply code {code} "
-                            f"({_exception_name(code)})")
+                            f"({exception_name(code)})")
     return rr
 
