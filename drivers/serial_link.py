@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import select
@@ -24,11 +25,12 @@ _BITS_PER_BYTE = 10
 # pyserial reads block at most this long, so deadlines are kept to within a slice and a stream
 # reader notices a stop request promptly without changing the port timeout per call (a tcsetattr).
 READ_SLICE_S = 0.005
-# Writes are a few bytes, which leave at once unless the adapter is wedged, so their bound is not the
-# reply timeout: pyserial checks its write deadline *after* the bytes went out, so with a 5 ms bound
-# a thread descheduled for 5 ms between the call and that check raised a write timeout for a command
-# that was sent.  A wedged adapter is still noticed, this late at most.
-_WRITE_TIMEOUT_FLOOR_S = 0.2
+# A write is bounded like a read: the reply timeout plus a few byte times (and the bytes' own time on the
+# line), so a wedged adapter holds a per-cycle command no longer than a missing reply would.  The bound is
+# on the port *accepting* the bytes, checked only while it takes none: pyserial checks its write deadline
+# after the bytes went out, so a thread descheduled between the call and that check saw a sent command as
+# timed out.
+WRITE_SLACK_BYTES = 4
 # Where Linux shows a USB-serial adapter's latency timer (ms): the longest it holds received bytes back before
 # passing them on when fewer than a USB packet arrived.  FTDI's default is 16 ms, longer than a reply timeout.
 _SYSFS_TTY = Path("/sys/class/tty")
@@ -71,13 +73,13 @@ class SerialLink:
                 rtscts=False,
                 dsrdtr=False,
                 timeout=min(self.timeout_s, READ_SLICE_S),
-                write_timeout=max(self.timeout_s, _WRITE_TIMEOUT_FLOOR_S),
+                write_timeout=self.write_bound(1),  # what bounds a URL port's writes (see `write`)
             )
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LinkLostError(f"{self.label}: cannot open {self.url}: {exc}") from None
         try:
             self.fd = self.ser.fileno()
-        except (AttributeError, NotImplementedError, serial.SerialException):
+        except (AttributeError, NotImplementedError, OSError, ValueError, serial.SerialException):  # e.g. loop://
             self.fd = None
         self.low_latency = self._request_low_latency()
 
@@ -114,11 +116,39 @@ class SerialLink:
     def link_lost(self, what: str, exc: BaseException) -> LinkLostError:
         return LinkLostError(f"{self.label} on {self.url}: {what} failed: {exc}")
 
+    def write_bound(self, n_bytes: int) -> float:
+        """Seconds a write of `n_bytes` may wait for the port to take them: the reply timeout plus
+        WRITE_SLACK_BYTES byte times and the bytes' own time on the line."""
+        return self.timeout_s + self.wire_time(n_bytes + WRITE_SLACK_BYTES)
+
     def write(self, data: bytes, what: str) -> None:
+        """Send `data`; LinkLostError naming `what` if the port fails, or takes none of the rest of it within
+        `write_bound` (a wedged adapter, a line held off)."""
+        port = self.port
+        bound = self.write_bound(len(data))
+        deadline = time.monotonic() + bound
         try:
-            self.port.write(data)
+            if self.fd is None:  # a URL port: pyserial's own bound (set at open) applies
+                port.write(data)
+                return
+            view = memoryview(data)
+            while view:
+                # The descriptor is non-blocking (pyserial opens it so): this takes what fits now.
+                with contextlib.suppress(BlockingIOError):
+                    view = view[os.write(self.fd, view):]
+                if view:
+                    _, writable, _ = select.select([], [self.fd], [], max(0.0, deadline - time.monotonic()))
+                    if not writable:
+                        raise self._write_timed_out(what, bound, len(data) - len(view), len(data))
+        except serial.SerialTimeoutException:
+            raise self._write_timed_out(what, bound, None, len(data)) from None
         except LINK_ERRORS as exc:
             raise self.link_lost(what, exc) from None
+
+    def _write_timed_out(self, what: str, bound: float, sent: int | None, total: int) -> LinkLostError:
+        part = "" if sent is None else f" ({sent} of {total} bytes sent)"
+        return LinkLostError(f"{self.label} on {self.url}: {what} failed: the port took no data for "
+                             f"{bound * 1e3:.1f} ms{part}; the adapter or line is stuck")
 
     def discard_input(self) -> None:
         try:

@@ -13,6 +13,7 @@ import tty
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -35,11 +36,18 @@ VERSION_TEXT = b"WEF-6A200-4-RCD emulator 1.0"
 # `O` counts only if the three arrive close together (the sensor wants them ~1 ms apart).
 _ZERO_WINDOW_S = 0.05
 _ZERO_REPEATS = 3
+# What advances the record number (byte 0): the fact sheet says only "a wrapping counter".  "reply": one per
+# record sent (the reference drivers' reading); "sample": the sensor's own sampling clock, one per
+# `sample_period_s` whatever is asked; "constant": never (always 0).
+CounterMode = Literal["reply", "sample", "constant"]
+COUNTER_MODES: tuple[CounterMode, ...] = ("reply", "sample", "constant")
 
 
 _PROBABILITIES = ("split_prob", "garbage_prob", "drop_crlf_prob", "drop_reply_prob", "reply_delay_prob",
                   "corrupt_p_prob")
-_DURATIONS_S = ("split_max_delay_s", "reply_delay_s", "reply_delay_jitter_s")
+_DURATIONS_S = ("split_max_delay_s", "reply_delay_s", "reply_delay_jitter_s", "p_delay_s")
+_COUNTS = ("garbage_max_len", "late_replies", "ignore_first_p")
+_COUNT_MIN = {"garbage_max_len": 1}
 
 
 @dataclass
@@ -57,9 +65,12 @@ class FaultConfig:
     drop_crlf_prob: float = 0.0  # send a data record without its CR LF
     drop_reply_prob: float = 0.0  # do not send a reply (or streamed record) at all
     ignore_p: bool = False  # never answer `p` (some models do not)
+    ignore_first_p: int = 0  # answer none of the first this many `p`s (the rest as usual)
+    p_delay_s: float = 0.0  # answer `p` this late (a model slow to format it), records as usual
     reply_delay_s: float = 0.0  # send a reply this late (what the line and the adapter add) ...
     reply_delay_prob: float = 1.0  # ... with this probability; replies stay in order (a later one waits) ...
     reply_delay_jitter_s: float = 0.0  # ... plus up to this much more, uniformly (a line's varying latency)
+    late_replies: int = 0  # the next this many replies are reply_delay_s late whatever reply_delay_prob (counts down)
     corrupt_p_prob: float = 0.0  # flip 1..3 random bits of a `p` reply (a noisy line: no checksum catches it) ...
     corrupt_p_repeat: bool = False  # ... the same bits every time (a corruption that repeats)
 
@@ -74,8 +85,9 @@ def _check_fault(name: str, value: object) -> None:
         raise ValueError(f"FaultConfig.{name} must be a probability from 0 to 1, got {value!r}")
     if name in _DURATIONS_S and not (math.isfinite(number) and number >= 0.0):
         raise ValueError(f"FaultConfig.{name} must be a finite number of seconds >= 0, got {value!r}")
-    if name == "garbage_max_len" and not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-        raise ValueError(f"FaultConfig.garbage_max_len must be an integer >= 1, got {value!r}")
+    least = _COUNT_MIN.get(name, 0)
+    if name in _COUNTS and not (isinstance(value, int) and not isinstance(value, bool) and value >= least):
+        raise ValueError(f"FaultConfig.{name} must be an integer >= {least}, got {value!r}")
 
 
 def draw_bit_flips(n_bytes: int, rng: np.random.Generator, most: int = 3) -> list[int]:
@@ -98,7 +110,8 @@ class WacohEmulator:
     `wrench_source()` gives the true (6,) wrench [N, N·m] in the cell convention each time a record is
     made; the emulator maps it to the sensor's axes, converts to counts with its sensitivities, adds
     its unloaded offset and noise, applies the zero from `O` and the moving-average filter, then
-    quantises to integer LSB and saturates at 0..0x3FFF.
+    quantises to integer LSB and saturates at 0..0x3FFF.  `counter` chooses what advances the record
+    number (COUNTER_MODES); `clock` is the sampling clock of `counter="sample"`.
     """
 
     def __init__(
@@ -111,7 +124,14 @@ class WacohEmulator:
         faults: FaultConfig | None = None,
         stream_period_s: float = 0.001,
         temperature_c: float = 25.0,
+        counter: CounterMode = "reply",
+        sample_period_s: float = 0.001,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        if counter not in COUNTER_MODES:
+            raise ValueError(f"counter must be one of {list(COUNTER_MODES)}, got {counter!r}")
+        if not (math.isfinite(sample_period_s) and sample_period_s > 0):
+            raise ValueError(f"sample_period_s must be a finite number of seconds > 0, got {sample_period_s!r}")
         offset_rng, noise_rng, fault_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
         self.wrench_source = wrench_source
         self.sensitivities = sensitivities
@@ -123,6 +143,10 @@ class WacohEmulator:
         self.faults = faults or FaultConfig()
         self.stream_period_s = stream_period_s
         self.temperature_c = temperature_c
+        self.counter = counter
+        self.sample_period_s = sample_period_s
+        self._clock = clock
+        self._clock0 = clock()
         self._noise_rng = noise_rng
         self._fault_rng = fault_rng
         # Sensor state.
@@ -251,9 +275,11 @@ class WacohEmulator:
         if c == "R":
             self._send_record()
         elif c == "p":
-            if not self.faults.ignore_p:
+            ignored = self.faults.ignore_p or self.commands["p"] <= self.faults.ignore_first_p
+            if not ignored:
                 s = self.sensitivities.values
-                self._send(self._maybe_corrupt_p(",".join(f"{v:.3f}" for v in s).encode() + b"\r\n"))
+                reply = self._maybe_corrupt_p(",".join(f"{v:.3f}" for v in s).encode() + b"\r\n")
+                self._send(reply, extra_delay_s=self.faults.p_delay_s)
         elif c == "O":
             self._zero_command()
         elif c == "V":
@@ -323,17 +349,28 @@ class WacohEmulator:
         except Exception:  # a broken source is the test's bug: say so, send nothing (like a lost reply)
             log.exception("WACOH emulator: wrench_source failed")
             return
-        record = encode_record(self._record_no, self.make_counts(w))
+        record = encode_record(self.record_number(), self.make_counts(w))
         self._record_no = (self._record_no + 1) % 10
         self.records_sent += 1
         self._send(record, is_record=True)
 
+    def record_number(self) -> int:
+        """Byte 0 of the record made now (see COUNTER_MODES)."""
+        if self.counter == "reply":
+            return self._record_no
+        if self.counter == "sample":
+            return int((self._clock() - self._clock0) // self.sample_period_s) % 10
+        return 0
+
     # ------------------------------------------------------------------ the wire, with faults
-    def _send(self, payload: bytes, is_record: bool = False) -> None:
+    def _send(self, payload: bytes, is_record: bool = False, extra_delay_s: float = 0.0) -> None:
         f, rng = self.faults, self._fault_rng
         if f.drop_reply_prob and rng.random() < f.drop_reply_prob:
             self.replies_dropped += 1
             return
+        forced = f.late_replies > 0  # this reply is late whatever reply_delay_prob
+        if forced:
+            f.late_replies -= 1
         if is_record and f.drop_crlf_prob and rng.random() < f.drop_crlf_prob:
             assert len(payload) == RECORD_LEN
             payload = payload[:-2]
@@ -346,17 +383,17 @@ class WacohEmulator:
             for i, piece in enumerate(pieces):
                 if i:
                     time.sleep(float(rng.uniform(0.0, f.split_max_delay_s)))
-                self._write(piece)
+                self._write(piece, extra_delay_s, forced)
         else:
-            self._write(payload)
+            self._write(payload, extra_delay_s, forced)
 
-    def _write(self, data: bytes) -> None:
+    def _write(self, data: bytes, extra_delay_s: float = 0.0, forced: bool = False) -> None:
         f = self.faults
-        late = f.reply_delay_s > 0 and self._fault_rng.random() < f.reply_delay_prob
-        if late or self._delayed:
+        late = f.reply_delay_s > 0 and (forced or self._fault_rng.random() < f.reply_delay_prob)
+        if late or extra_delay_s > 0 or self._delayed:
             # Due after the delay if late, and never before a reply still waiting (a line keeps order).
             delay = f.reply_delay_s + float(self._fault_rng.uniform(0.0, f.reply_delay_jitter_s)) if late else 0.0
-            due = time.monotonic() + delay
+            due = time.monotonic() + delay + extra_delay_s
             if self._delayed:
                 due = max(due, self._delayed[-1][0])
             self._delayed.append((due, data))

@@ -27,7 +27,7 @@ from drivers.wacoh.codec import (
 pytestmark = pytest.mark.timeout(30)
 
 NOMINAL_ZERO = np.full(6, float(RAW_ZERO))
-HEX = b"0123456789ABCDEF"
+HEX = b"0123456789ABCDEFabcdef"  # a hex digit in either case (the sensor sends upper case)
 
 record_nos = st.integers(0, 9)
 counts6 = st.lists(st.integers(0, RAW_MAX), min_size=6, max_size=6)
@@ -142,12 +142,29 @@ def test_record_number_not_a_digit_is_rejected(frame: bytes, byte: int) -> None:
 
 
 @given(valid_records, st.integers(1, 24), st.integers(0, 255).filter(lambda b: b not in HEX))
-def test_non_upper_case_hex_is_rejected(frame: bytes, pos: int, byte: int) -> None:
+def test_a_byte_that_is_not_a_hex_digit_is_rejected(frame: bytes, pos: int, byte: int) -> None:
     _assert_rejected(frame[:pos] + bytes([byte]) + frame[pos + 1 :])
 
 
-def test_lower_case_hex_is_rejected() -> None:
-    _assert_rejected(b"32000200020002000200020a0\r\n")
+@pytest.mark.parametrize("byte", [b"g", b"G", b"@", b"`", b"/", b":", b" ", b"x"])
+def test_the_neighbours_of_the_hex_digits_are_rejected(byte: bytes) -> None:
+    _assert_rejected(b"3200020002000200020002" + byte + b"00\r\n")
+
+
+def test_lower_case_hex_is_read_as_hex() -> None:
+    """The sensor sends upper case, but a lower-case digit is still a hex digit: the same value."""
+    assert decode_counts(b"32000200020002000200020a0\r\n")[1][5] == 0x20A0
+    assert np.array_equal(decode_counts(b"02000200020001ccd20002000\r\n")[1],
+                          decode_counts(b"02000200020001CCD20002000\r\n")[1])
+
+
+@given(valid_records, st.lists(st.integers(1, 24)))
+def test_any_mix_of_cases_decodes_like_upper_case(frame: bytes, lowered: list[int]) -> None:
+    mixed = bytearray(frame)
+    for pos in lowered:
+        mixed[pos : pos + 1] = bytes(mixed[pos : pos + 1]).lower()
+    record_no, counts = decode_counts(bytes(mixed))
+    assert (record_no, counts.tolist()) == (decode_counts(frame)[0], decode_counts(frame)[1].tolist())
 
 
 @given(valid_records, st.integers(0, 5), st.integers(RAW_MAX + 1, 0xFFFF))

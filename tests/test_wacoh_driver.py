@@ -265,6 +265,7 @@ class ScriptedPort:
 def scripted_sensor(replies: list[bytes], sheet: Sensitivities | None = None) -> tuple[WacohSensor, ScriptedPort]:
     """A sensor whose `p` replies are scripted; without a `sheet` it falls back to NOMINAL."""
     sensor = WacohSensor(WacohConfig(port="scripted", sensitivities=sheet, timeout_s=0.002))
+    sensor.p_timeout_s = 0.002  # a scripted reply is there at once: a reply cut before its LF need not wait long
     port = ScriptedPort(replies)
     sensor._link.ser = port
     return sensor, port

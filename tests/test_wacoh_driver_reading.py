@@ -14,7 +14,8 @@ from bench.timing import bench_serial
 from drivers.errors import LinkLostError
 from drivers.wacoh.codec import RAW_ZERO
 from drivers.wacoh.config import MAX_FAILURES, WacohConfig
-from drivers.wacoh.driver import _LATE_REPLY_S, WacohSensor
+from drivers.wacoh.driver import WacohSensor
+from drivers.wacoh.record_sync import LATE_REPLY_S as _LATE_REPLY_S
 from sim.wacoh_emulator import FaultConfig, WacohEmulator
 from tests.wacoh_fixtures import (
     BIG_OFFSET,
@@ -337,7 +338,7 @@ def test_a_write_delayed_past_the_reply_timeout_is_not_a_lost_link(
     the 5 ms reply timeout around a write must not turn a sent command into a lost link."""
     import types
 
-    import serial.serialposix as posix
+    import drivers.serial_link as serial_link
 
     stalls = []
 
@@ -351,7 +352,7 @@ def test_a_write_delayed_past_the_reply_timeout_is_not_a_lost_link(
     # Only the driver's port sees the stall (the emulator writes with the real os.write).
     driver_os = types.SimpleNamespace(**{k: getattr(os, k) for k in dir(os) if not k.startswith("__")})
     driver_os.write = descheduled_write
-    monkeypatch.setattr(posix, "os", driver_os)
+    monkeypatch.setattr(serial_link, "os", driver_os)
     sensor = connect(sensors, emulator, timeout_s=0.005)
     assert sensor.sensitivities_source == "sensor"
     for _ in range(5):

@@ -17,7 +17,9 @@ RAW_ZERO = 8192  # 0x2000: nominal unloaded output (offset binary)
 RAW_MAX = 0x3FFF  # effectively 14-bit
 N_CHANNELS = 6
 CRLF = b"\r\n"
-_HEX_UPPER = b"0123456789ABCDEF"
+# The sensor sends upper-case hex; a lower-case digit is still a hex digit (the fact sheet's validity rule), so
+# it is read as one.
+_HEX = b"0123456789ABCDEFabcdef"
 _DIGITS = b"0123456789"
 # A line longer than any reply we know (the `p` reply is ~49 bytes) is noise; cap what we buffer.
 MAX_LINE = 256
@@ -94,8 +96,8 @@ def decode_counts(frame: bytes) -> tuple[int, np.ndarray]:
     if frame[0] not in _DIGITS:
         raise ProtocolError(f"WACOH record {bytes(frame)!r}: byte 0 is not a record-number digit")
     body = bytes(frame[1:25])
-    if body.translate(None, _HEX_UPPER):  # whatever survives deleting the hex digits is invalid
-        raise ProtocolError(f"WACOH record {bytes(frame)!r}: bytes 1-24 are not all upper-case hex digits")
+    if body.translate(None, _HEX):  # whatever survives deleting the hex digits is invalid
+        raise ProtocolError(f"WACOH record {bytes(frame)!r}: bytes 1-24 are not all hex digits")
     counts = np.array([int(body[i : i + 4], 16) for i in range(0, 24, 4)], dtype=np.int64)
     if np.any(counts > RAW_MAX):
         raise ProtocolError(f"WACOH record {bytes(frame)!r}: a value exceeds 0x{RAW_MAX:X}")

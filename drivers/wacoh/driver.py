@@ -7,7 +7,6 @@ import logging
 import select
 import threading
 import time
-from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -16,12 +15,10 @@ from drivers.errors import DriverError, LinkLostError
 from drivers.interfaces import ForceSensor, Wrench
 from drivers.serial_link import LINK_ERRORS, READ_SLICE_S, SerialLink, latency_timer_ms
 from drivers.wacoh.codec import (
-    CMD_RECORD,
     CMD_SENSITIVITIES,
     CMD_START,
     CMD_STOP,
     CMD_ZERO,
-    MAX_LINE,
     N_CHANNELS,
     RAW_MAX,
     RAW_ZERO,
@@ -32,18 +29,24 @@ from drivers.wacoh.codec import (
     sensor_to_cell,
 )
 from drivers.wacoh.config import WacohConfig
-from drivers.wacoh.record_sync import LATE_REPLY_S as _LATE_REPLY_S
-from drivers.wacoh.record_sync import RecordSync
-from drivers.wacoh.sensitivity import agreed_sensitivities
+from drivers.wacoh.poll import Poller, Sample
+from drivers.wacoh.sensitivity import (
+    P_REPLY_BYTES,
+    P_TIMEOUT_S,
+    agreed_sensitivities,
+    drain_until_quiet,
+    read_line,
+)
+from drivers.wacoh.stats import FailureRun, ReadStats
 
 log = logging.getLogger(__name__)
 
-# After `E` the sensor may still have records in flight (and a USB adapter its buffer): let them land.
-_DRAIN_S = 0.02
+# After `E` the sensor may still have records in flight (and a USB adapter its buffer): let them land.  That is
+# several records' time on the wire (one takes 28 ms at 9600 bit/s), and never less than DRAIN_MIN_S.
+DRAIN_RECORDS = 4
+DRAIN_MIN_S = 0.02
 # `O` must be sent three times, about 1 ms apart.
 _ZERO_REPEATS = 3
-# At connect, one `R` with this much patience learns the sensor's record number.
-_SYNC_WAIT_S = 0.1
 _ZERO_GAP_S = 0.001
 _ZERO_SETTLE_S = 0.01
 # `tare_from_recent` averages the records the reads returned over this last stretch of time (a task's tare state
@@ -54,11 +57,8 @@ RECENT_TARE_MIN = 10
 RECENT_TARE_AGE_S = 0.1
 
 
-@dataclass(frozen=True)
-class _Sample:
-    seq: int  # increments with every valid record received (stream mode freshness)
-    t: float  # host receive time, time.monotonic()
-    counts: np.ndarray  # (6,) raw counts, sensor axes
+def _stat(name: str) -> property:
+    return property(lambda self: getattr(self.stats, name), doc=f"ReadStats.{name}")
 
 
 class WacohSensor(ForceSensor):
@@ -69,8 +69,8 @@ class WacohSensor(ForceSensor):
     an all-NaN Wrench and is counted; the `max_consecutive_failures`-th such read in a row raises
     LinkLostError instead.  An OS-level port error (device unplugged, emulator gone) raises LinkLostError
     at once.  A channel at the ends of the 14-bit range (saturated) reads NaN.  In poll mode a reading is
-    always the answer to its own request: when record numbers turn ambiguous the driver resynchronises
-    (see record_sync.py), and its reads meanwhile are failures too.
+    always the answer to its own request: when a late reply could not be told from a current one the driver
+    resynchronises (see record_sync.py), and its reads meanwhile are failures too.
     Software tare and the nominal zero reset on every connect; `tare()` after connecting.
     """
 
@@ -84,27 +84,44 @@ class WacohSensor(ForceSensor):
         self.sensitivities_source: Literal["sensor", "config"] = "config"
         self._zero = np.full(N_CHANNELS, float(RAW_ZERO))
         self._framer = RecordReader()
-        # Counters for diagnostics; the stream thread updates them under _cond.
-        self.records_ok = 0
-        self.records_rejected = 0
-        self.records_saturated = 0
-        self.timeouts = 0
-        self.records_stale = 0  # poll mode: records that answered an earlier request (discarded)
-        self.resyncs = 0  # poll mode: resynchronisations started (see record_sync.py)
+        # Counters for diagnostics (the stream thread updates them under _cond), and what the current run of
+        # failed reads met (for the lost-link error).
+        self.stats = ReadStats()
+        self._run = FailureRun()
         self.consecutive_failures = 0
         self._warned_saturation = False
-        self._sync = RecordSync()  # poll mode: whose reply each record is (see record_sync)
+        self.p_timeout_s = max(P_TIMEOUT_S, config.timeout_s)  # each `p` ask's patience (see sensitivity.py)
+        self._poller = Poller(self._link, self._framer, config.port, config.timeout_s, self.stats, self._run)
         # Stream mode.
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._latest: _Sample | None = None
+        self._latest: Sample | None = None
         self._last_seq = 0
         self._link_error: str | None = None
         # The raw records the reads returned, newest last (`tare_from_recent`); emptied by a failed read.
-        self._recent: collections.deque[_Sample] = collections.deque(maxlen=max(config.tare_samples, 1))
+        self._recent: collections.deque[Sample] = collections.deque(maxlen=max(config.tare_samples, 1))
 
     # ------------------------------------------------------------------ diagnostics
+    records_ok = _stat("records_ok")
+    records_rejected = _stat("records_rejected")
+    records_saturated = _stat("records_saturated")
+    timeouts = _stat("timeouts")
+    records_stale = _stat("records_stale")
+    resyncs = _stat("resyncs")
+    resync_reads = _stat("resync_reads")
+
+    @property
+    def counter_steps_by_one(self) -> bool:
+        """Poll mode: whether the record number has been seen to step by one per reply (see record_sync.py)."""
+        return self._poller.sync.counter_steps_by_one
+
+    @property
+    def stop_drain_s(self) -> float:
+        """How long records may still arrive after `E`: DRAIN_RECORDS records' time on the wire, at least
+        DRAIN_MIN_S."""
+        return max(DRAIN_MIN_S, DRAIN_RECORDS * self._link.wire_time(RECORD_LEN))
+
     @property
     def sensitivities(self) -> Sensitivities:
         """The sensitivities in use: from `p` if the sensor answered, else the configured ones."""
@@ -122,21 +139,14 @@ class WacohSensor(ForceSensor):
 
     def counters(self) -> dict[str, int]:
         with self._cond:
-            return {
-                "records_ok": self.records_ok,
-                "records_rejected": self.records_rejected,
-                "records_saturated": self.records_saturated,
-                "timeouts": self.timeouts,
-                "records_stale": self.records_stale,
-                "resyncs": self.resyncs,
-                "consecutive_failures": self.consecutive_failures,
-            }
+            return {**self.stats.as_dict(), "consecutive_failures": self.consecutive_failures}
 
     # ------------------------------------------------------------------ lifecycle
     def _connect(self) -> None:
         cfg = self.config
         self._link.open()
-        self._sync.reset()
+        self._poller.reset()
+        self._run.clear()
         try:
             self._stop_stream_and_drain()  # a previous session may have left streaming on
             self._sens, self.sensitivities_source = self._request_sensitivities()
@@ -147,8 +157,8 @@ class WacohSensor(ForceSensor):
             self.consecutive_failures = 0
             if cfg.mode == "stream":
                 self._start_stream()
-            elif self._poll_once(wait_s=max(cfg.timeout_s, _SYNC_WAIT_S), count=False) is None:
-                log.warning("WACOH sensor on %s: no record at connect; reads resynchronise first", cfg.port)
+            elif self._poller.probe() == 0:
+                log.warning("WACOH sensor on %s: no valid record at connect", cfg.port)
         except BaseException:
             self._stop_stream_thread()
             self._link.close()
@@ -162,12 +172,12 @@ class WacohSensor(ForceSensor):
         try:
             if self._link.ser is not None:
                 try:
-                    self._link.ser.write(CMD_STOP)
-                except LINK_ERRORS as exc:
+                    self._link.write(CMD_STOP, "stop-streaming command")
+                except LinkLostError as exc:
                     log.debug("WACOH sensor on %s: could not send E on close: %s", self.config.port, exc)
                 self._stop_stream_thread()
                 try:
-                    time.sleep(_DRAIN_S)
+                    time.sleep(self.stop_drain_s)
                     self._link.ser.reset_input_buffer()
                 except LINK_ERRORS as exc:
                     log.debug("WACOH sensor on %s: could not drain on close: %s", self.config.port, exc)
@@ -182,30 +192,14 @@ class WacohSensor(ForceSensor):
 
     def _stop_stream_and_drain(self) -> None:
         self._link.write(CMD_STOP, "stop-streaming command")
-        time.sleep(_DRAIN_S)
+        time.sleep(self.stop_drain_s)
         self._discard_input()
-
-    def _read_line(self, deadline: float) -> bytes | None:
-        """Bytes up to and including the first LF, or None at the deadline."""
-        buf = bytearray()
-        while True:
-            chunk = self._link.read_chunk(MAX_LINE, deadline)
-            if not chunk:
-                if time.monotonic() >= deadline:
-                    return None
-                continue
-            lf = chunk.find(b"\n")
-            if lf >= 0:
-                return bytes(buf + chunk[: lf + 1])  # the rest is discarded with the next request
-            buf += chunk
-            if len(buf) > MAX_LINE:
-                return bytes(buf)  # not a reply we know; let the parser reject it
 
     def _request_sensitivities(self) -> tuple[Sensitivities, Literal["sensor", "config"]]:
         """The sensitivities from `p` if two believable replies agree (see sensitivity.py), else the sheet's,
         else the nominal values."""
         cfg = self.config
-        sens, problem = agreed_sensitivities(self._ask_sensitivities, cfg)
+        sens, problem = agreed_sensitivities(self._ask_sensitivities, cfg, self.p_timeout_s)
         if sens is not None:
             return sens, "sensor"
         used = ("the calibration sheet's" if cfg.sensitivities is not None
@@ -214,11 +208,14 @@ class WacohSensor(ForceSensor):
                     cfg.fallback_sensitivities.values)
         return cfg.fallback_sensitivities, "config"
 
-    def _ask_sensitivities(self) -> bytes | None:
-        """Send one `p`: its reply line, or None if none came in time."""
+    def _ask_sensitivities(self, after_silence: bool = False) -> bytes | None:
+        """Send one `p`: its reply line, or None if none came in time.  After an ask without a reply, first let
+        the line fall quiet: a reply that was only slow must not be cut in two by the discard."""
+        if after_silence:
+            drain_until_quiet(self._link, self.stop_drain_s, self.p_timeout_s)
         self._discard_input()
         self._link.write(CMD_SENSITIVITIES, "sensitivities request")
-        return self._read_line(self._link.reply_deadline(64))
+        return read_line(self._link, time.monotonic() + self.p_timeout_s + self._link.wire_time(P_REPLY_BYTES))
 
     # ------------------------------------------------------------------ reading
     def _read(self) -> Wrench:
@@ -228,118 +225,33 @@ class WacohSensor(ForceSensor):
             self._note_failure()
             nan = np.full(3, np.nan)
             return Wrench(t=time.monotonic(), force=nan, torque=nan.copy())
-        self.consecutive_failures = 0
+        self._note_success()
         self._recent.append(sample)
         return self._to_wrench(sample)
 
-    def _next_sample(self) -> _Sample | None:
-        return self._wait_stream_sample() if self.config.mode == "stream" else self._poll_once()
+    def _next_sample(self) -> Sample | None:
+        return self._wait_stream_sample() if self.config.mode == "stream" else self._poller.poll()
+
+    def _note_success(self) -> None:
+        self.consecutive_failures = 0
+        self._run.clear()
 
     def _note_failure(self) -> None:
         with self._cond:
             self.consecutive_failures += 1
             n = self.consecutive_failures
         if n >= self.config.max_consecutive_failures:
-            raise LinkLostError(
-                f"WACOH sensor on {self.config.port}: no valid record in {n} consecutive reads "
-                f"({self.timeouts} timeouts, {self.records_rejected} rejected records, {self.resyncs} "
-                f"resynchronisations so far)"
-            )
+            steps = self.counter_steps_by_one if self.config.mode == "poll" else None
+            raise LinkLostError(f"WACOH sensor on {self.config.port}: no valid record in {n} consecutive reads "
+                                f"({self._run.describe(steps)})")
 
-    def _poll_once(self, wait_s: float | None = None, count: bool = True) -> _Sample | None:
-        """Send one `R` and read until *its* record arrives; None on timeout or a corrupt reply.
-
-        A record is this request's only if its record number is the one the sensor gives its next
-        record: a reply to an earlier request that arrived late (after its own read gave up) carries an
-        earlier number and is discarded, never returned as new.  `wait_s` overrides the timeout
-        (connect's first read, which learns the numbering); `count=False` leaves the counters alone.
-        """
-        sync = self._sync
-        sync.expire()
-        if not sync.resyncing and sync.ambiguous():
-            self._start_resync()
-        if sync.resyncing and not self._resync_done(count):
-            return None
-        # Clear leftovers first: a late or partial earlier reply must not pass for this one (pitfall 4).
-        self._discard_input()
-        self._link.write(CMD_RECORD, "record request")
-        sent = time.monotonic()
-        expected = sync.sent(sent)
-        deadline = sent + (self.config.timeout_s if wait_s is None else wait_s)
-        deadline += self._link.wire_time(RECORD_LEN)
-        framer = self._framer
-        rejected0, long0 = framer.rejected, framer.long_rejected
-        try:
-            while True:
-                # Ask for exactly what completes the record: the read returns as soon as it is there.
-                chunk = self._link.read_chunk(max(1, RECORD_LEN - framer.pending), deadline)
-                if not chunk:
-                    if time.monotonic() >= deadline:
-                        break
-                    continue
-                for frame in framer.feed(chunk):
-                    record_no, counts = decode_counts(frame)
-                    if sync.answers(record_no, expected):
-                        self.records_ok += count
-                        return _Sample(seq=self.records_ok, t=time.monotonic(), counts=counts)
-                    self.records_stale += count
-                if framer.long_rejected > long0 and wait_s is None:
-                    # The reply came but was corrupt (or it was a late reply of another command and
-                    # this one's is still to come: this request stays unsettled).
-                    break
-            if framer.long_rejected == long0:
-                self.timeouts += count
-                sync.unanswered(expected, sent)
-            else:
-                sync.corrupt_reply(expected, sent)
-            return None
-        finally:
-            self.records_rejected += (framer.rejected - rejected0) * count
-
-    def _start_resync(self) -> None:
-        self.resyncs += 1
-        self._sync.start_resync()
-        log.warning("WACOH sensor on %s: %d unanswered request(s) may still be answered and no reply could be told "
-                    "from theirs; resynchronising (no requests for %.0f ms)", self.config.port,
-                    len(self._sync.unsettled), _LATE_REPLY_S * 1e3)
-
-    def _resync_done(self, count: bool) -> bool:
-        """One read's share of a resynchronisation: discard what arrives, for at most one request time (a
-        read costs no more than one that times out).  True once the line has been quiet long enough: this
-        read then sends the new request, whose reply teaches the numbering afresh."""
-        until = self._sync.resync_until
-        assert until is not None
-        request_s = self.config.timeout_s + self._link.wire_time(RECORD_LEN)
-        now = time.monotonic()
-        waiting = now < until
-        # Past the window only one look, so that this read still has its whole timeout for the request.
-        if self._drain(min(until, now + request_s) if waiting else now, count):
-            # Still arriving: later than any reply should be, so wait for the line to fall quiet.
-            self._sync.extend_resync(time.monotonic() + request_s)
-            return False
-        if waiting:
-            return False
-        self._sync.end_resync()
-        return True
-
-    def _drain(self, deadline: float, count: bool) -> bool:
-        """Read and discard whatever arrives until `deadline` (looking at least once); whether anything did."""
-        arrived = False
-        while True:
-            chunk = self._link.read_chunk(MAX_LINE, deadline)
-            if chunk:
-                arrived = True
-                self.records_stale += len(self._framer.feed(chunk)) * count
-            elif time.monotonic() >= deadline:
-                return arrived
-
-    def _to_wrench(self, sample: _Sample) -> Wrench:
+    def _to_wrench(self, sample: Sample) -> Wrench:
         values = (sample.counts - self._zero) / self._scale
         saturated = (sample.counts <= 0) | (sample.counts >= RAW_MAX)
         if saturated.any():
             # A clipped channel is not the true load: NaN, not a plausible-looking wrong number.
             values[saturated] = np.nan
-            self.records_saturated += 1
+            self.stats.records_saturated += 1
             if not self._warned_saturation:
                 self._warned_saturation = True
                 log.warning("WACOH sensor on %s: channel(s) %s saturated; reading them as NaN",
@@ -403,15 +315,15 @@ class WacohSensor(ForceSensor):
         framer = self._framer
         rejected0 = framer.rejected
         frames = framer.feed(chunk)
-        self.records_rejected += framer.rejected - rejected0
+        self.stats.records_rejected += framer.rejected - rejected0
         if frames:
-            self.records_ok += len(frames)
+            self.stats.records_ok += len(frames)
             _, counts = decode_counts(frames[-1])
             seq = self._latest.seq + 1 if self._latest else 1
-            self._latest = _Sample(seq=seq, t=t, counts=counts)
+            self._latest = Sample(seq=seq, t=t, counts=counts)
             self._cond.notify_all()
 
-    def _wait_stream_sample(self) -> _Sample | None:
+    def _wait_stream_sample(self) -> Sample | None:
         """The newest record not returned yet, waiting up to the timeout for one."""
         deadline = self._link.reply_deadline(RECORD_LEN)
         with self._cond:
@@ -431,7 +343,8 @@ class WacohSensor(ForceSensor):
                     return latest
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    self.timeouts += 1
+                    self.stats.timeouts += 1
+                    self._run.timeouts += 1
                     return None
                 self._cond.wait(left)
 
@@ -487,7 +400,7 @@ class WacohSensor(ForceSensor):
             if sample is None:
                 self._note_failure()
                 continue
-            self.consecutive_failures = 0
+            self._note_success()
             if np.any((sample.counts <= 0) | (sample.counts >= RAW_MAX)):
                 raise DriverError(f"WACOH sensor on {self.config.port}: cannot tare, a channel is saturated "
                                   f"(counts {sample.counts.tolist()})")

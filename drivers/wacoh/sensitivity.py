@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 
 from drivers.errors import ProtocolError
-from drivers.wacoh.codec import SHEET_TOLERANCE, Sensitivities, check_sensitivities, parse_sensitivities
+from drivers.serial_link import SerialLink
+from drivers.wacoh.codec import MAX_LINE, SHEET_TOLERANCE, Sensitivities, check_sensitivities, parse_sensitivities
 from drivers.wacoh.config import WacohConfig
 
 log = logging.getLogger(__name__)
@@ -19,6 +21,12 @@ log = logging.getLogger(__name__)
 # of the nominal values.  Only the sheet catches a corruption that repeats identically (a reply then
 # agrees with itself) or changes a digit within the band: without it no check on the replies can.
 P_ATTEMPTS = 6
+# `p` is asked at connect, outside the control loop, and nothing promises how soon its reply (about 49 bytes,
+# "read to LF") comes: each ask waits this long (or the configured timeout_s if longer) plus the reply's time on
+# the wire.  A first ask without a reply is asked once more after the line fell quiet; two without a reply end
+# the exchange (some models never answer `p`), and the configured sensitivities are used.
+P_TIMEOUT_S = 0.2
+P_REPLY_BYTES = 64  # a little more than the usual reply, for the wire-time allowance
 
 
 def believable_sensitivities(line: bytes, config: WacohConfig) -> Sensitivities:
@@ -29,20 +37,28 @@ def believable_sensitivities(line: bytes, config: WacohConfig) -> Sensitivities:
                                "the calibration sheet's")
 
 
-def agreed_sensitivities(ask: Callable[[], bytes | None], config: WacohConfig) -> tuple[Sensitivities | None, str]:
-    """Ask `p` (`ask` sends one and returns its reply line, None if none came in time) until two well-formed,
-    believable replies agree: (those sensitivities, ""), else (None, why not).  A garbled or unbelievable
-    reply is asked again; two believable ones that disagree, or no reply at all to the first request (some
-    models never answer), end the exchange."""
+def agreed_sensitivities(ask: Callable[[bool], bytes | None], config: WacohConfig,
+                         timeout_s: float = P_TIMEOUT_S) -> tuple[Sensitivities | None, str]:
+    """Ask `p` until two well-formed, believable replies agree: (those sensitivities, ""), else (None, why not).
+
+    `ask(after_silence)` sends one `p` and returns its reply line, None if none came within `timeout_s`;
+    `after_silence` says the previous ask got none (the line is drained first).  A garbled or unbelievable reply
+    is asked again; two believable ones that disagree, or no reply to the first two asks (some models never
+    answer), end the exchange."""
     problem = ""
     plausible: Sensitivities | None = None
-    for attempt in range(P_ATTEMPTS):
-        line = ask()
+    heard = False
+    silent = False
+    for _ in range(P_ATTEMPTS):
+        line = ask(silent)
         if line is None:
-            problem = f"no reply to 'p' within {config.timeout_s:.3g} s"
-            if attempt == 0:
+            if silent and not heard:
+                problem = f"no reply to 'p' within {timeout_s:.3g} s, asked twice (some models never answer it)"
                 break
+            silent = True
+            problem = f"no reply to 'p' within {timeout_s:.3g} s"
             continue
+        heard, silent = True, False
         try:
             sens = believable_sensitivities(line, config)
         except ProtocolError as exc:
@@ -58,3 +74,29 @@ def agreed_sensitivities(ask: Callable[[], bytes | None], config: WacohConfig) -
         problem = f"two plausible replies to 'p' disagree ({plausible.values} and {sens.values})"
         break
     return None, problem
+
+
+def read_line(link: SerialLink, deadline: float) -> bytes | None:
+    """Bytes up to and including the first LF, or None at the deadline."""
+    buf = bytearray()
+    while True:
+        chunk = link.read_chunk(MAX_LINE, deadline)
+        if not chunk:
+            if time.monotonic() >= deadline:
+                return None
+            continue
+        lf = chunk.find(b"\n")
+        if lf >= 0:
+            return bytes(buf + chunk[: lf + 1])  # the rest is discarded with the next request
+        buf += chunk
+        if len(buf) > MAX_LINE:
+            return bytes(buf)  # not a reply we know; let the parser reject it
+
+
+def drain_until_quiet(link: SerialLink, quiet_s: float, limit_s: float) -> None:
+    """Read and discard until nothing has arrived for `quiet_s`, for at most `limit_s`."""
+    end = time.monotonic() + limit_s
+    while True:
+        now = time.monotonic()
+        if now >= end or not link.read_chunk(MAX_LINE, min(end, now + quiet_s)):
+            return
