@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
@@ -59,7 +60,11 @@ def open_arm(settings: Mapping[str, Any], limits: JointLimits, dt: float, where:
     if protocol == "tm-ethernet":
         eth = TMEthernetConfig.from_dict(raw, where)
         if min_stale_s:
-            eth = replace(eth, stale_after_s=max(eth.stale_after_s, min_stale_s))
+            # The Listen node's replies are as late as the table is stale there: the same allowance, and as
+            # many unanswered scripts as fit in it.
+            eth = replace(eth, stale_after_s=max(eth.stale_after_s, min_stale_s),
+                          max_reply_age_s=max(eth.max_reply_age_s, min_stale_s),
+                          max_unanswered_scripts=max(eth.max_unanswered_scripts, math.ceil(min_stale_s / dt)))
             eth.validate(where)
         eth.check_period(dt, where)
         return TMEthernetArm(eth, limits, dt)

@@ -28,7 +28,7 @@ from drivers.tm5.ethernet_slave import (
     encode_svr,
     parse_items,
 )
-from drivers.tm5.tm_packet import FrameError, TMFramer, encode_packet
+from drivers.tm5.tm_packet import FrameError, TMFramer, TMPacket, encode_packet
 from sim.emulator_loop import EmulatorLoop
 from sim.plant_api import PlantLike
 from sim.tm_listen_node import ListenNode
@@ -50,6 +50,7 @@ class TMEthernetFaults:
     link_down_until: float = 0.0  # every connection dropped, new ones closed at once
     estop_until: float = 0.0  # ESTOP reads 1, the arm holds
     error_until: float = 0.0  # Robot_Error reads 1, the arm holds
+    safeguard_until: float = 0.0  # Safeguard_A reads 1 (a protective stop), the arm holds
     drop_probability: float = 0.0  # a broadcast packet is lost
     corrupt_probability: float = 0.0  # a broadcast packet's checksum is wrong
     modbus_offset_deg: float = 0.0  # the Modbus table's joint angles read this much off (a table that disagrees)
@@ -71,13 +72,15 @@ class TMEthernetEmulator(EmulatorLoop):
     integrates the streamed joint speed into the plant's target and steps the plant.  The broadcast runs on
     its own clock.  `coalesce` packets go out in one write, each write in `split` pieces; `mode` and `items`
     (names of the table's items, None = all) shape the table, to exercise a client's refusals.
+    `script_interval_s` > 0 makes the Listen node take that long per packet, answering and acting when done:
+    each reply comes that late, and packets sent faster queue behind each other (the lag users see above ~15 Hz).
     """
 
     def __init__(self, plant: PlantLike, host: str = "127.0.0.1", slave_port: int = 0, listen_port: int = 0,
                  period_s: float = DEFAULT_PERIOD_S, time_scale: float = 1.0, coalesce: int = 1, split: int = 1,
                  mode: TableMode = "binary", items: Sequence[str] | None = None, command_latency_cycles: int = 0,
                  node_message: str = "Listen1", vjog_timeout_s: float | None = None, seed: int = 0,
-                 modbus_port: int | None = 0) -> None:
+                 modbus_port: int | None = 0, script_interval_s: float = 0.0) -> None:
         if not (period_s > 0 and math.isfinite(period_s)):
             raise ConfigError(f"TM Ethernet emulator: period_s must be positive, got {period_s!r}")
         if not (time_scale > 0 and math.isfinite(time_scale)):
@@ -87,6 +90,7 @@ class TMEthernetEmulator(EmulatorLoop):
                               f">= 0, got {coalesce}, {split}, {command_latency_cycles}")
         if mode not in _MODES:
             raise ConfigError(f"TM Ethernet emulator: mode must be one of {list(_MODES)}, got {mode!r}")
+        _check_interval(script_interval_s)
         super().__init__("tm-ethernet-emulator", "TM Ethernet emulator")
         self.plant = plant
         self.host = host
@@ -98,6 +102,8 @@ class TMEthernetEmulator(EmulatorLoop):
         self.items = None if items is None else tuple(items)
         self.faults = TMEthernetFaults()
         self.node = ListenNode(node_message, command_latency_cycles, vjog_timeout_s)
+        self.script_interval_s = script_interval_s
+        self.project_speed = 100  # % (Project_Speed in the table)
         self.broadcasts = 0
         self.published: deque[ArmState] = deque(maxlen=256)
         self.cycles = 0
@@ -162,6 +168,35 @@ class TMEthernetEmulator(EmulatorLoop):
     def press_estop(self, seconds: float | None = None) -> None:
         self._set(estop_until=_until(seconds))
 
+    def trigger_safeguard(self, seconds: float | None = None) -> None:
+        """Safeguard_A reads 1 (the safeguard input: a protective stop) for `seconds`; the arm holds."""
+        self._set(safeguard_until=_until(seconds))
+
+    def set_items(self, items: Sequence[str] | None) -> None:
+        """The table carries only these items from the next broadcast on (None: all of them)."""
+        names = None if items is None else tuple(items)
+
+        def apply() -> None:
+            self.items = names
+        self._call(apply)
+
+    def set_script_interval(self, seconds: float) -> None:
+        """The Listen node takes `seconds` per packet from now on (0: answers at once)."""
+        _check_interval(seconds)
+
+        def apply() -> None:
+            self.script_interval_s = seconds
+        self._call(apply)
+
+    def set_project_speed(self, percent: int) -> None:
+        """Project_Speed reads `percent` from the next broadcast on (TMflow: 5-100 in steps of 5)."""
+        if not (isinstance(percent, int) and 5 <= percent <= 100):
+            raise ConfigError(f"TM Ethernet emulator: project speed must be an integer in 5-100 %, got {percent!r}")
+
+        def apply() -> None:
+            self.project_speed = percent
+        self._call(apply)
+
     def raise_error(self, seconds: float | None = None) -> None:
         """Robot_Error reads 1 (with Error_Code) for `seconds`."""
         self._set(error_until=_until(seconds))
@@ -178,8 +213,8 @@ class TMEthernetEmulator(EmulatorLoop):
         self._set(modbus_offset_deg=deg)
 
     def clear_faults(self) -> None:
-        self._set(silent_until=0.0, link_down_until=0.0, estop_until=0.0, error_until=0.0, drop_probability=0.0,
-                  corrupt_probability=0.0, modbus_offset_deg=0.0)
+        self._set(silent_until=0.0, link_down_until=0.0, estop_until=0.0, error_until=0.0, safeguard_until=0.0,
+                  drop_probability=0.0, corrupt_probability=0.0, modbus_offset_deg=0.0)
 
     def enter_node(self) -> None:
         """The flow reaches the Listen node: connected clients get the entry message."""
@@ -235,24 +270,41 @@ class TMEthernetEmulator(EmulatorLoop):
             return
         self._listen_clients.add(writer)
         framer = TMFramer("TM emulator Listen node")
+        loop = asyncio.get_running_loop()
+        next_free = 0.0  # when the node is done with the packets it took so far (script_interval_s > 0)
         try:
             while chunk := await reader.read(65536):
                 framer.feed(chunk)
-                try:
-                    while (packet := framer.next_packet()) is not None:
-                        for reply in self.node.handle(packet):
-                            writer.write(reply)
-                except FrameError as exc:
-                    log.info("TM emulator Listen node: %s", exc)
-                    writer.write(encode_packet("CPERR", exc.cperr_code))
-                except ProtocolError as exc:
-                    log.info("TM emulator Listen node: %s", exc)
-                    writer.write(encode_packet("CPERR", "01"))
+                while True:
+                    try:
+                        packet = framer.next_packet()
+                    except FrameError as exc:  # the framer skipped past it: the next `$` may start a good one
+                        log.info("TM emulator Listen node: %s", exc)
+                        writer.write(encode_packet("CPERR", exc.cperr_code))
+                        continue
+                    if packet is None:
+                        break
+                    now = loop.time()
+                    if self.script_interval_s <= 0 and next_free <= now:
+                        self._answer(writer, packet)
+                    else:  # answered when done, after the packets before it
+                        next_free = max(now, next_free) + self.script_interval_s
+                        loop.call_at(next_free, self._answer, writer, packet)
         except OSError:
             pass
         finally:
             self._listen_clients.discard(writer)
             writer.close()
+
+    def _answer(self, writer: asyncio.StreamWriter, packet: TMPacket) -> None:
+        try:
+            replies = self.node.handle(packet)
+        except ProtocolError as exc:
+            log.info("TM emulator Listen node: %s", exc)
+            replies = [encode_packet("CPERR", "01")]
+        if not writer.is_closing():
+            for reply in replies:
+                writer.write(reply)
 
     def _close_all(self) -> None:
         for writer in [*self._slave_clients, *self._listen_clients]:
@@ -282,7 +334,7 @@ class TMEthernetEmulator(EmulatorLoop):
 
     def _servo_cycle(self) -> None:
         now = time.monotonic()
-        stopped = self._estop(now) or self._error(now)
+        stopped = self._estop(now) or self._error(now) or now < self.faults.safeguard_until
         if stopped and not self._holding:
             self.node.stop_now()
             self.plant.hold()
@@ -327,7 +379,8 @@ class TMEthernetEmulator(EmulatorLoop):
         items = encode_state_items(
             st.q, st.dq, st.tau, robot_error=error, estop=self._estop(now) or st.status.estop,
             project_run=st.status.project_running, project_pause=st.status.paused,
-            error_code=0x0A if error else 0)
+            safeguard=now < self.faults.safeguard_until, error_code=0x0A if error else 0,
+            project_speed=self.project_speed)
         if self.items is not None:
             items = [(name, value) for name, value in items if name in self.items]
         if self.mode == "binary":
@@ -373,6 +426,11 @@ class TMEthernetEmulator(EmulatorLoop):
         if self._bound is None:
             raise RuntimeError("the emulator is not started")
         return self._bound
+
+
+def _check_interval(seconds: float) -> None:
+    if not (isinstance(seconds, int | float) and math.isfinite(seconds) and seconds >= 0):
+        raise ConfigError(f"TM Ethernet emulator: script_interval_s must be >= 0 s, got {seconds!r}")
 
 
 def _until(seconds: float | None) -> float:

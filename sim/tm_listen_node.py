@@ -35,6 +35,9 @@ class ListenNode:
 
     Motion statements are not applied at once: they wait `latency_cycles` servo cycles in a queue (the
     controller's command latency), then act on the velocity state that `servo_target` integrates.
+    StopAndClearBuffer acts on receipt (it empties that queue) and ignores the other statements of its packet.
+    Statements whose function is in `refuse` are answered ERROR.  `scripts_seen` keeps the function names of
+    the last accepted scripts, one tuple per packet; `executed` the functions run, in order.
     """
 
     def __init__(self, message: str = "Listen1", latency_cycles: int = 0, vjog_timeout_s: float | None = None) -> None:
@@ -46,8 +49,12 @@ class ListenNode:
         self.cycle = 0
         self.time_s = 0.0
         self.scripts = 0
+        self.status_queries = 0  # TMSTA 00 asked
         self.ignored_speeds = 0
         self.tags: dict[int, bool] = {}
+        self.refuse: set[str] = set()
+        self.scripts_seen: deque[tuple[str, ...]] = deque(maxlen=64)
+        self.executed: deque[str] = deque(maxlen=256)
         self._queue: deque[tuple[int, Callable[[], None]]] = deque()
 
     # ----------------------------------------------------------------------------- packets
@@ -67,20 +74,26 @@ class ListenNode:
             return [encode_packet("CPERR", "F1")]
         self.scripts += 1
         lines = script.split("\r\n")
-        actions: list[Callable[[], None]] = []
+        actions: list[tuple[str, Callable[[], None]]] = []
         bad = []
-        exits = False
         for n, line in enumerate(lines, start=1):
             action = self._compile(line)
-            if action is None:
+            m = _CALL.match(line)
+            name = m.group(1) if m else ""
+            if action is None or name in self.refuse:
                 bad.append(n)
             else:
-                actions.append(action)
-                exits = exits or line.strip().startswith("ScriptExit(")
+                actions.append((name, action))
         if bad:
             return [encode_packet("TMSCT", f"{tid},ERROR;" + ";".join(map(str, bad)))]
-        for action in actions:
-            self._queue.append((self.cycle + self.latency_cycles, action))
+        names = tuple(name for name, _ in actions)
+        self.scripts_seen.append(names)
+        exits = "ScriptExit" in names
+        if "StopAndClearBuffer" in names:  # acts now, and the rest of its packet is ignored
+            self._run("StopAndClearBuffer", self._stop_all)
+        else:
+            for name, action in actions:
+                self._queue.append((self.cycle + self.latency_cycles, self._runner(name, action)))
         reply = [encode_packet("TMSCT", f"{tid},OK")]
         if exits:
             self.leave()
@@ -89,6 +102,7 @@ class ListenNode:
     def _status(self, text: str) -> bytes:
         code, _, rest = text.partition(",")
         if code == "00":
+            self.status_queries += 1
             return encode_packet("TMSTA", f"00,true,{self.message}" if self.in_node else "00,false,")
         if code == "01" and rest.strip().isdigit():
             tag = int(rest)
@@ -124,6 +138,13 @@ class ListenNode:
         if name == "ScriptExit" and len(values) <= 1:
             return lambda: None
         return None
+
+    def _runner(self, name: str, action: Callable[[], None]) -> Callable[[], None]:
+        return lambda: self._run(name, action)
+
+    def _run(self, name: str, action: Callable[[], None]) -> None:
+        self.executed.append(name)
+        action()
 
     # ----------------------------------------------------------------------------- node and motion
     def enter(self) -> None:

@@ -373,7 +373,9 @@ def test_silence_while_moving_is_stale_state_and_stops(arm: TMEthernetArm, emula
     assert arm.lifecycle is Lifecycle.FAULT
     wait_for(lambda: not emulator.node.vmode.active, what="the fault's stop through the Listen node")
     emulator.clear_faults()
-    arm.arm()  # re-arming reconnects the Ethernet Slave
+    seq = arm.read_state().seq  # arming takes a table no older than stale_after_s, and waits for none
+    wait_for(lambda: arm.read_state().seq > seq, what="the broadcast again")
+    arm.arm()
     assert arm.lifecycle is Lifecycle.ARMED
 
 

@@ -11,28 +11,28 @@ import numpy as np
 from drivers.errors import (
     CommandRejectedError,
     ConfigError,
+    DriverError,
     LifecycleError,
     LinkLostError,
     ProtocolError,
     StaleDataError,
 )
-from drivers.interfaces import Arm, ArmState, ArmStatus, JointLimits, Lifecycle
+from drivers.interfaces import Arm, ArmState, ArmStatus, JointLimits, Lifecycle, vector_text
 from drivers.tm5.ethernet_config import TMEthernetConfig
 from drivers.tm5.ethernet_slave import (
     MODE_RESPONSE,
     N_JOINTS,
     RESPONSE_CODES,
     SlaveState,
+    SlaveTableError,
     check_mode,
     decode_table,
+    missing_items_message,
     parse_svr,
 )
 from drivers.tm5.listen import (
-    EntryMessage,
     ListenProtocol,
     ListenStatus,
-    ScriptReply,
-    TagStatus,
     continue_vjog,
     cperr,
     queue_tag,
@@ -40,6 +40,8 @@ from drivers.tm5.listen import (
     stop_and_clear_buffer,
     stop_continue_vmode,
 )
+from drivers.tm5.listen_backlog import ReplyLag
+from drivers.tm5.listen_session import ListenSession
 from drivers.tm5.table_check import check_before_arming
 from drivers.tm5.tm_link import TMLink
 from drivers.tm5.tm_packet import TMPacket
@@ -47,8 +49,14 @@ from drivers.tm5.velocity_loop import VelocityLoop
 
 log = logging.getLogger(__name__)
 
-_POLL_S = 0.002  # sleep between polls while connect() or arm() wait for the robot
+_POLL_S = 0.002  # sleep between polls while connect(), a first arm() or doctor's probes wait for the robot
 _NODE_HINT = "start the project in TMflow and let its flow reach the Listen node, then arm again"
+_RECONNECT = "reconnect (disconnect, then connect) outside the control loop"
+# The largest data table believed: TM's default items make ~1 kB.  A LEN above it is a broken field, refused
+# at once instead of waited for.
+SLAVE_MAX_LEN = 8192
+LAG_PROBE_SCRIPTS = 32  # doctor's burst of scripts streamed at the loop rate to measure the reply lag
+_LAG_PROBE_TAG = 15
 
 
 class TMEthernetArm(Arm):
@@ -57,7 +65,15 @@ class TMEthernetArm(Arm):
 
     `read_state` drains the broadcast without blocking and returns the latest table (`seq` counts decoded
     tables, `t` is the host's receive time); `send_target` closes the position loop on the host and
-    streams one `SetContinueVJog` per control period.  Units are converted here only.
+    streams one `SetContinueVJog` per control period, whose replies are counted on later polls (too many
+    or too old unanswered stops the arm).  Units are converted here only.
+
+    `arm` never reopens a link (a link that is down fails at once; `connect` reopens).  It waits on the wire
+    only for what this Listen connection has not shown yet: the first arm asks `$TMSTA 00` and waits for
+    ContinueVJog's reply (bounded by reply_timeout_s; before a control loop starts).  A re-arm on the same
+    connection (the control loop's, after a stop) waits for nothing: the node's state is known from its
+    messages and ContinueVJog's reply is checked on later polls like a streamed script's.  The optional
+    Modbus cross-check (modbus_port) runs on every arm and does block on its request.
     """
 
     def __init__(self, config: TMEthernetConfig, limits: JointLimits, dt: float, speed_scale: float = 1.0) -> None:
@@ -67,15 +83,12 @@ class TMEthernetArm(Arm):
             raise ConfigError(f"the TM5-700 has {N_JOINTS} joints, the joint limits describe {limits.n}")
         self.config = config
         self._slave: TMLink | None = None
-        self._listen: TMLink | None = None
-        self._protocol = ListenProtocol(source=f"TM Listen node {config.host}:{config.listen_port}")
+        self._node = ListenSession(config)
+        self._backlog = self._node.backlog
         self._latest: SlaveState | None = None
         self._latest_t = 0.0
         self._seq = 0
-        self._listen_status: ListenStatus | None = None
-        self._replies: dict[str, ScriptReply] = {}
-        self._entry_message: str | None = None
-        self._tag_done: bool | None = None
+        self._warned_speed: int | None = None
         self._warned_untested = False
         self.velocity_loop = VelocityLoop(limits, dt, config.position_gain, config.command_latency_periods,
                                           speed_scale)
@@ -91,7 +104,7 @@ class TMEthernetArm(Arm):
 
     @property
     def listen_up(self) -> bool:
-        return self._listen is not None and self._listen.is_open
+        return self._node.up
 
     @property
     def latest_table(self) -> SlaveState | None:
@@ -101,37 +114,85 @@ class TMEthernetArm(Arm):
     @property
     def entry_message(self) -> str | None:
         """The Listen node's message, once the robot announced entering it on this connection."""
-        return self._entry_message
+        return self._node.entry_message
+
+    @property
+    def unanswered_scripts(self) -> int:
+        """Scripts sent to the Listen node whose reply has not come in yet (as of the last poll)."""
+        return self._backlog.count
 
     # ----------------------------------------------------------------------------- bring-up probes
     def probe_listen_node(self) -> ListenStatus:
         """Ask `$TMSTA 00` whether the project is in its Listen node (connects to the node if needed)."""
         if not self.listen_up:
-            self._open_listen()
-        assert self._listen is not None
-        self._listen_status = None
-        self._listen.send(ListenProtocol.listen_status_query())
-        self._wait_for(lambda: self._listen_status is not None, "a reply to TMSTA 00")
-        assert self._listen_status is not None
-        return self._listen_status
+            self._node.open()
+        return self._query_listen_status()
 
-    def command_round_trip(self, tag: int = 15) -> float:
+    def command_round_trip(self, tag: int = _LAG_PROBE_TAG) -> float:
         """Seconds from sending `QueueTag(tag)` (no motion) to `$TMSTA 01` reporting the tag done: how long a
-        command takes to pass the Listen node's queue.  Needs the project in its Listen node."""
+        command takes to pass the Listen node's queue.  Needs the project in its Listen node; the whole exchange
+        is bounded by reply_timeout_s (each status query's answer by as much again)."""
         if not self.listen_up:
-            self._open_listen()
-        assert self._listen is not None
+            self._node.open()
+        timeout = self.config.reply_timeout_s
         t0 = time.monotonic()
-        tid = self._send_script([queue_tag(tag, 0)])
-        self._wait_for(lambda: tid in self._replies, f"the reply to QueueTag({tag})")
-        self._tag_done = None
-        while self._tag_done is not True:
-            self._tag_done = None
-            self._listen.send(ListenProtocol.tag_status_query(tag))
-            self._wait_for(lambda: self._tag_done is not None, f"a reply to TMSTA 01,{tag}")
-            if self._tag_done is None:
-                raise ProtocolError(f"TM {self.endpoint}: the robot does not know tag {tag}")
-        return time.monotonic() - t0
+        deadline = t0 + timeout
+        tid = self._node.send_script([queue_tag(tag, 0)])
+        self._wait_for(lambda: not self._backlog.pending(tid), f"QueueTag({tag}) (script {tid})", deadline)
+        while True:
+            self._node.tags.pop(tag, None)
+            self._node.send(ListenProtocol.tag_status_query(tag))
+            self._wait_for(lambda: tag in self._node.tags, f"TMSTA 01,{tag}")
+            done = self._node.tags[tag].done
+            if done is None:
+                raise ProtocolError(f"TM {self.endpoint}: TMSTA 01 answers that tag {tag} does not exist, though "
+                                    f"QueueTag({tag}) (script {tid}) was accepted")
+            if done:
+                return time.monotonic() - t0
+            if time.monotonic() > deadline:
+                raise ProtocolError(f"TM {self.endpoint}: tag {tag} still pending {timeout:g} s after QueueTag({tag}) "
+                                    "was accepted: the project is paused, or its motion queue does not run")
+            time.sleep(_POLL_S)
+
+    def script_reply_lag(self, count: int = LAG_PROBE_SCRIPTS, period_s: float | None = None) -> ReplyLag:
+        """Stream `count` QueueTag scripts (no motion) one per `period_s` (default: the control period) and
+        measure how late each reply comes: whether the node keeps up with the loop's rate.  Blocks for the
+        burst plus up to reply_timeout_s for its last replies; refused while armed (doctor runs it)."""
+        if self.lifecycle is Lifecycle.ARMED:
+            raise LifecycleError(f"TM {self.endpoint}: the reply lag is measured only while not armed")
+        if count < 1:
+            raise ValueError(f"count must be >= 1, got {count!r}")
+        if not self.listen_up:
+            self._node.open()
+        period = self.dt if period_s is None else period_s
+        ids: list[str] = []
+        most = 0
+        next_t = time.monotonic()
+        for _ in range(count):
+            self._poll()
+            most = max(most, self._backlog.count)
+            ids.append(self._node.send_script([queue_tag(_LAG_PROBE_TAG, 0)]))
+            next_t += period
+            while (now := time.monotonic()) < next_t:  # polled finely: a reply's lag counts to its arrival
+                time.sleep(min(_POLL_S, next_t - now))
+                self._poll()
+        deadline = time.monotonic() + self.config.reply_timeout_s
+        while any(self._backlog.pending(t) for t in ids) and time.monotonic() < deadline:
+            time.sleep(_POLL_S)
+            self._poll()
+        lags = sorted(lag for t in ids if (lag := self._backlog.lag(t)) is not None)
+        median = float(np.median(lags)) if lags else float("nan")
+        return ReplyLag(sent=count, answered=len(lags), median_s=median, max_s=lags[-1] if lags else float("nan"),
+                        max_unanswered=most)
+
+    def confirm_stop(self) -> None:
+        """Wait (bounded by reply_timeout_s) for the Listen node's replies to the last stop's two scripts:
+        ProtocolError when they do not come, ScriptError when StopAndClearBuffer is refused.  Blocks: for
+        closing, never inside a control loop."""
+        ids, self._node.stop_ids = self._node.stop_ids, []
+        if ids:
+            self._wait_for(lambda: not any(self._backlog.pending(t) for t in ids),
+                           f"the stop (scripts {', '.join(ids)})", listen_only=True)
 
     # ----------------------------------------------------------------------------- wire: lifecycle
     def _connect(self) -> None:
@@ -142,71 +203,87 @@ class TMEthernetArm(Arm):
         try:
             self._open_slave()
             try:
-                self._open_listen()
-            except LinkLostError as exc:  # reading needs no Listen node; arming will ask for it again
-                log.info("TM Listen node not reachable yet (%s); arm() needs it", exc)
+                self._node.open()
+            except LinkLostError as exc:  # reading needs no Listen node; arming will ask for it
+                log.info("TM Listen node not reachable yet (%s); arm() needs it (connect again)", exc)
         except BaseException:
             self._disconnect()
             raise
 
     def _disconnect(self) -> None:
-        for link in (self._slave, self._listen):
-            if link is not None:
-                link.close()
-        self._slave = self._listen = None
+        if self.listen_up and self._node.stop_ids:
+            try:
+                self.confirm_stop()
+            except DriverError as exc:  # closing goes on: the node's own state is what it is
+                log.warning("TM %s: the stop before closing is unconfirmed: %s", self.endpoint, exc)
+        if self._slave is not None:
+            self._slave.close()
+        self._slave = None
+        self._node.close()
 
     def _arm(self) -> None:
-        """Both links up, the project in its Listen node, the controller healthy: then enter velocity streaming."""
+        """Both links up, a fresh table with every safety item, the controller healthy, the project in its
+        Listen node: then enter velocity streaming.  Refusals seen locally come first and wait for nothing."""
         if not self.link_up:
-            self._open_slave()
-        self._poll()  # takes the replies and the node's messages that came in meanwhile (may find it closed)
+            raise LinkLostError(f"TM {self.endpoint}: cannot arm: the Ethernet Slave link is down: {_RECONNECT}")
         if not self.listen_up:
-            try:
-                self._open_listen()
-            except LinkLostError as exc:
-                raise LinkLostError(f"{exc}: the Listen node serves this port only while a project runs in it; "
-                                    f"{_NODE_HINT}") from None
-        assert self._listen is not None
-        self._listen_status = None
-        self._listen.send(ListenProtocol.listen_status_query())
-        self._wait_for(lambda: self._listen_status is not None, "a reply to TMSTA 00 (in the Listen node?)")
-        assert self._listen_status is not None
-        if not self._listen_status.in_node:
-            raise LifecycleError(f"TM {self.endpoint}: the project is not in its Listen node: {_NODE_HINT}")
-        status = self._status(self._fresh_table())
+            raise LinkLostError(
+                f"TM {self.endpoint}: cannot arm: the Listen node link is down (port {self.config.listen_port} is "
+                f"served only while a project runs in its Listen node): {_NODE_HINT}; {_RECONNECT}")
+        self._poll()  # the replies and the node's messages that came in meanwhile (may find a link closed)
+        table = self._armable_table()
+        status = self._status(table)
         if not status.ok:
             raise LifecycleError(f"cannot arm: controller reports {status}")
+        self._backlog.check(time.monotonic())  # a node still owing replies would queue the new stream too
+        known = self._node.streaming_confirmed and self._node.in_node is True
+        if not known and not self._query_listen_status().in_node:
+            raise LifecycleError(f"TM {self.endpoint}: the project is not in its Listen node: {_NODE_HINT}")
         if self.config.modbus_port is not None:  # the controller's own Modbus table must tell the same story
             check_before_arming(self)
-        tid = self._send_script([continue_vjog()])
-        self._wait_for(lambda: tid in self._replies, f"the reply to ContinueVJog() (script {tid})")
+        tid = self._node.send_script([continue_vjog()])
+        if not known:
+            self._wait_for(lambda: not self._backlog.pending(tid), f"ContinueVJog() (script {tid})")
         self.velocity_loop.reset()
 
     def _stop(self) -> None:
-        if self._listen is None or not self._listen.is_open:
+        """StopAndClearBuffer() then StopContinueVmode(), as two packets, sent without waiting (`confirm_stop`
+        waits; closing does).  Apart, because StopAndClearBuffer ignores motions in its own packet; in this
+        order, because it discards the node's queue: the speeds a lagging node still holds go, and the
+        StopContinueVmode sent after it is not among them."""
+        if not self.listen_up:
             raise LinkLostError(f"TM {self.endpoint}: cannot stop: the Listen node link is down")
-        self._send_script([stop_continue_vmode(), stop_and_clear_buffer()])
+        self._node.stop_ids = [self._node.send_script([stop_and_clear_buffer()]),
+                               self._node.send_script([stop_continue_vmode()])]
 
     # ----------------------------------------------------------------------------- wire: data
     def _read_state(self) -> ArmState:
         self._poll()
         table = self._fresh_table()
-        silence = time.monotonic() - self._latest_t
-        if self.lifecycle is Lifecycle.ARMED and silence > self.config.stale_after_s:
-            raise StaleDataError(f"TM {self.config.host}:{self.config.slave_port}: no new data table for "
-                                 f"{silence * 1000:.0f} ms (limit {self.config.stale_after_s * 1000:.0f} ms) "
-                                 "while moving: stale state")
+        now = time.monotonic()
+        if self.lifecycle is Lifecycle.ARMED:
+            silence = now - self._latest_t
+            if silence > self.config.stale_after_s:
+                raise StaleDataError(f"TM {self.config.host}:{self.config.slave_port}: no new data table for "
+                                     f"{silence * 1000:.0f} ms (limit {self.config.stale_after_s * 1000:.0f} ms) "
+                                     "while moving: stale state")
+            missing = table.missing_safety_items
+            if missing:
+                raise SlaveTableError(missing_items_message(missing, "the table changed while armed, and the cell "
+                                                            "no longer sees the controller's stops"))
+            self._backlog.check(now)
         return ArmState(t=self._latest_t, q=table.q, dq=table.dq, tau=table.tau, status=self._status(table),
                         seq=self._seq)
 
     def _write_target(self, q: np.ndarray) -> None:
         self._poll_listen()  # a refused script or a left node faults before another speed goes out
+        self._backlog.check(time.monotonic())
         table = self._fresh_table()
         assert self._last_sent is not None
         v = self.joint_speeds(q, self._last_sent, table.q)
         if not np.all(np.isfinite(v)):
-            raise CommandRejectedError(f"command refused: non-finite joint speeds {v!r}")
-        self._send_script([set_continue_vjog(np.degrees(v))])
+            raise CommandRejectedError(f"command refused: non-finite joint speeds {vector_text(v)}")
+        self._node.send_script([set_continue_vjog(np.degrees(v))])
         self.velocity_loop.sent(v)
 
     def joint_speeds(self, q: np.ndarray, q_prev: np.ndarray, q_meas: np.ndarray) -> np.ndarray:
@@ -218,7 +295,7 @@ class TMEthernetArm(Arm):
         """Connect to the Ethernet Slave and wait for a first table this driver can read."""
         cfg = self.config
         self._slave = TMLink.open(cfg.host, cfg.slave_port, cfg.connect_timeout_s, f"TM Ethernet Slave {cfg.host}:"
-                                  f"{cfg.slave_port}")
+                                  f"{cfg.slave_port}", SLAVE_MAX_LEN)
         before = self._seq
         deadline = time.monotonic() + cfg.connect_timeout_s
         while self._seq == before:
@@ -231,10 +308,6 @@ class TMEthernetArm(Arm):
                     f"TM {cfg.host}:{cfg.slave_port}: no data table within {cfg.connect_timeout_s:g} s: enable the "
                     "Ethernet Slave (TMflow > Setting > Connection > Ethernet Slave) with a transmit data table")
             time.sleep(_POLL_S)
-
-    def _open_listen(self) -> None:
-        cfg = self.config
-        self._listen = TMLink.open(cfg.host, cfg.listen_port, cfg.connect_timeout_s, self._protocol.source)
 
     def _poll(self) -> None:
         self._poll_slave()
@@ -266,30 +339,28 @@ class TMEthernetArm(Arm):
         self._latest = decode_table(frame)
         self._latest_t = time.monotonic()
         self._seq += 1
+        speed = self._latest.project_speed
+        if speed is not None and speed != 100 and speed != self._warned_speed:
+            log.warning("TM %s: Project_Speed is %d %%, not 100 %%: the controller scales the streamed joint speeds "
+                        "and the host's position loop assumes them as sent; set the project speed to 100 %% in TMflow",
+                        self.endpoint, speed)
+        self._warned_speed = speed
 
     def _poll_listen(self) -> None:
-        if self._listen is None:
-            return
         try:
-            packets = self._listen.receive()
+            self._node.poll()
         except LinkLostError:
-            self._listen = None
             if self.lifecycle is Lifecycle.ARMED:
                 raise
-            return  # not commanding: a project stopped in TMflow is no fault of a reading session
-        for packet in packets:
-            event = self._protocol.handle(packet)
-            if isinstance(event, ScriptReply):
-                self._replies[event.id] = event
-                if len(self._replies) > 64:
-                    self._replies.pop(next(iter(self._replies)))
-            elif isinstance(event, ListenStatus):
-                self._listen_status = event
-            elif isinstance(event, TagStatus):
-                self._tag_done = event.done
-            elif isinstance(event, EntryMessage):
-                self._entry_message = event.text
-                log.info("TM Listen node entered: %r", event.text)
+            # not commanding: a project stopped in TMflow is no fault of a reading session
+
+    def _query_listen_status(self) -> ListenStatus:
+        """`$TMSTA 00` and its reply (waits up to reply_timeout_s)."""
+        self._node.status = None
+        self._node.send(ListenProtocol.listen_status_query())
+        self._wait_for(lambda: self._node.status is not None, "TMSTA 00 (is the project in its Listen node?)")
+        assert self._node.status is not None
+        return self._node.status
 
     def _fresh_table(self) -> SlaveState:
         """The latest table, or LinkLostError when the broadcast has been silent for link_lost_after_s."""
@@ -302,27 +373,42 @@ class TMEthernetArm(Arm):
                                 f"{silence * 1000:.0f} ms (limit {limit * 1000:.0f} ms): link lost")
         return self._latest
 
+    def _armable_table(self) -> SlaveState:
+        """The latest table when it is no older than stale_after_s and carries every safety item."""
+        table = self._fresh_table()
+        age = time.monotonic() - self._latest_t
+        limit = self.config.stale_after_s
+        if age > limit:
+            raise StaleDataError(f"TM {self.config.host}:{self.config.slave_port}: cannot arm: the latest data table "
+                                 f"is {age * 1000:.0f} ms old (limit stale_after_s {limit * 1000:.0f} ms)")
+        missing = table.missing_safety_items
+        if missing:
+            raise SlaveTableError(f"cannot arm: {missing_items_message(missing, 'the cell could not see the stops')}")
+        return table
+
     @staticmethod
     def _status(table: SlaveState) -> ArmStatus:
-        running = table.project_run is not False
-        paused = bool(table.project_pause)
-        # The controller takes no motion without its robot link, or while the project is paused or stopped:
-        # to the cell that is a protective stop (the driver faults if it happens while armed).
-        not_moving = table.robot_link is False or paused or not running
-        return ArmStatus(error=bool(table.robot_error), estop=bool(table.estop), project_running=running,
+        running = table.project_run is True
+        paused = table.project_pause is True
+        # The controller takes no motion without its robot link, while the project is paused or stopped, or
+        # with its safeguard input triggered: to the cell each is a protective stop (the driver faults if
+        # one happens while armed).  A safety item the table lacks reads as one too: the cell cannot tell.
+        not_moving = (table.robot_link is not True or paused or not running or table.safeguard is not False
+                      or bool(table.missing_safety_items))
+        return ArmStatus(error=table.robot_error is True, estop=table.estop is True, project_running=running,
                          paused=paused, protective_stop=not_moving)
 
-    def _send_script(self, lines: list[str]) -> str:
-        if self._listen is None or not self._listen.is_open:
-            raise LinkLostError(f"TM {self.endpoint}: the Listen node link is down")
-        tid, packet = self._protocol.script(lines)
-        self._listen.send(packet)
-        return tid
-
-    def _wait_for(self, done: Callable[[], bool], what: str) -> None:
-        deadline = time.monotonic() + self.config.reply_timeout_s
+    def _wait_for(self, done: Callable[[], bool], what: str, deadline: float | None = None,
+                  listen_only: bool = False) -> None:
+        """Poll until `done()`; ProtocolError naming `what` at `deadline` (default: reply_timeout_s from now; the
+        callers' deadlines are reply_timeout_s from their start too)."""
+        end = time.monotonic() + self.config.reply_timeout_s if deadline is None else deadline
         while not done():
-            if time.monotonic() > deadline:
-                raise ProtocolError(f"TM {self.endpoint}: no {what} within {self.config.reply_timeout_s:g} s")
+            if time.monotonic() > end:
+                raise ProtocolError(f"TM {self.endpoint}: no answer to {what} within "
+                                    f"{self.config.reply_timeout_s:g} s (reply_timeout_s)")
             time.sleep(_POLL_S)
-            self._poll()
+            if listen_only:
+                self._poll_listen()
+            else:
+                self._poll()

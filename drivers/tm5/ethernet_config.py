@@ -25,7 +25,14 @@ class TMEthernetConfig:
     # While armed, no new table for this long stops the arm (StaleDataError): moving on frozen state for
     # TM's 1 s would be 64 periods blind.  A few broadcast periods, so one late or merged packet passes.
     stale_after_s: float = 0.06
-    reply_timeout_s: float = 1.0  # arm(): wait this long for the Listen node's answers
+    # Waits on the Listen node outside the control loop: the first arm on a connection, doctor's probes, the
+    # stop's confirmation when closing.
+    reply_timeout_s: float = 1.0
+    # The streamed scripts' replies come back on later polls.  More than this many unanswered, or the oldest
+    # unanswered for longer than max_reply_age_s, and the node queues what it cannot run at once: the arm
+    # stops (ListenBacklogError, a lost link).  About three periods' worth at the 15.6 ms broadcast period.
+    max_unanswered_scripts: int = 3
+    max_reply_age_s: float = 0.05
     # Position loop on the host: joint speed = feed-forward + position_gain * (target - joints ahead) [1/s].
     # The feed-forward alone makes the controller's integrated target the streamed one; the gain corrects
     # what timing does to it (a speed applied for a late or missed period, one clipped at a limit).
@@ -60,14 +67,21 @@ class TMEthernetConfig:
                 f"must be <= link_lost_after_s ({self.link_lost_after_s:g} s), got {self.stale_after_s}")
         require(0 < self.reply_timeout_s <= 30, join(where, "reply_timeout_s"),
                 f"must lie in (0, 30] s, got {self.reply_timeout_s}")
+        require(1 <= self.max_unanswered_scripts <= 64, join(where, "max_unanswered_scripts"),
+                f"must lie in 1..64 scripts (a few control periods' worth), got {self.max_unanswered_scripts}")
+        require(0.005 <= self.max_reply_age_s <= self.link_lost_after_s, join(where, "max_reply_age_s"),
+                f"must lie in [0.005 s, link_lost_after_s ({self.link_lost_after_s:g} s)], got {self.max_reply_age_s}")
         require(0 <= self.position_gain <= 20, join(where, "position_gain"),
                 f"must lie in [0, 20] 1/s, got {self.position_gain}")
         require(0 <= self.command_latency_periods <= 10, join(where, "command_latency_periods"),
                 f"must lie in 0..10 periods (doctor's command round trip), got {self.command_latency_periods}")
 
     def check_period(self, dt: float, where: str = "tm_ethernet") -> None:
-        """Stale data is a few control periods at least: a shorter limit trips on the broadcast's jitter."""
+        """Stale data is a few control periods at least: a shorter limit trips on the broadcast's jitter.  So is
+        a reply's allowed age: a reply normally comes back within the period its script went out in."""
         check_stale_periods(self.stale_after_s, dt, where)
+        require(self.max_reply_age_s >= 2 * dt - 1e-12, join(where, "max_reply_age_s"),
+                f"must be >= 2 control periods ({2 * dt:g} s at {dt:g} s), got {self.max_reply_age_s!r}")
 
     @classmethod
     def from_dict(cls, data: Any, where: str) -> TMEthernetConfig:

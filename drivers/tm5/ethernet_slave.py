@@ -13,6 +13,11 @@ from drivers.errors import ProtocolError
 
 N_JOINTS = 6
 REQUIRED_ITEMS = ("Joint_Angle", "Joint_Speed", "Joint_Torque")
+# The items without which the cell cannot see that the controller will not, or must not, move: arming needs
+# them all (TM's own driver requires every default item but the torque statistics and Ctrl_AI1), and a table
+# that loses one while armed stops the arm.  Robot_Link = 0 means motion scripts do not run: streamed speeds
+# would pile up unseen in the position loop and all act once the link returns.
+SAFETY_ITEMS = ("Robot_Link", "Robot_Error", "Project_Run", "Project_Pause", "Safeguard_A", "ESTOP")
 
 MODE_RESPONSE = 0
 MODE_BINARY = 1
@@ -49,6 +54,7 @@ class SlaveState:
     tau: np.ndarray
     robot_error: bool | None = None
     estop: bool | None = None
+    safeguard: bool | None = None  # Safeguard_A: 1 = the safeguard (protective stop) input is triggered
     project_run: bool | None = None
     project_pause: bool | None = None
     error_code: int | None = None
@@ -58,6 +64,11 @@ class SlaveState:
     flange_pose: np.ndarray | None = None  # Coord_Robot_Flange: x, y, z [m], rx, ry, rz [rad]
     tool_pose: np.ndarray | None = None  # Coord_Robot_Tool, same units
     items: tuple[str, ...] = ()  # every item the table carries, in its order
+
+    @property
+    def missing_safety_items(self) -> tuple[str, ...]:
+        """The SAFETY_ITEMS this table lacks, in SAFETY_ITEMS order."""
+        return tuple(name for name in SAFETY_ITEMS if name not in self.items)
 
 
 def parse_svr(data: bytes) -> SvrFrame:
@@ -152,6 +163,7 @@ def decode_table(frame: SvrFrame) -> SlaveState:
         tau=tau_mnm / 1000.0,
         robot_error=_flag(items, "Robot_Error"),
         estop=_flag(items, "ESTOP"),
+        safeguard=_flag(items, "Safeguard_A"),
         project_run=_flag(items, "Project_Run"),
         project_pause=_flag(items, "Project_Pause"),
         error_code=_int(items, "Error_Code", signed=False),
@@ -162,6 +174,12 @@ def decode_table(frame: SvrFrame) -> SlaveState:
         tool_pose=_pose(items, "Coord_Robot_Tool"),
         items=tuple(items),
     )
+
+
+def missing_items_message(missing: tuple[str, ...] | list[str], what: str) -> str:
+    """One line naming the safety items a table lacks and where in TMflow to add them."""
+    return (f"Ethernet Slave data table lacks {', '.join(missing)}: {what}; in {_SETTING} > Data Table Setting "
+            "import TM's Data_Table_Setting_TM_ROS_Default.xml or tick these items")
 
 
 def _floats(items: dict[str, bytes], name: str, count: int) -> np.ndarray:
@@ -197,7 +215,7 @@ def _pose(items: dict[str, bytes], name: str) -> np.ndarray | None:
 
 def encode_state_items(q: np.ndarray, dq: np.ndarray, tau: np.ndarray, *, robot_error: bool = False,
                        estop: bool = False, project_run: bool = True, project_pause: bool = False,
-                       error_code: int = 0, robot_link: bool = True, ma_mode: int = 1,
+                       safeguard: bool = False, error_code: int = 0, robot_link: bool = True, ma_mode: int = 1,
                        project_speed: int = 100) -> list[tuple[str, bytes]]:
     """The items of the default table this driver reads, from SI values (the emulator's broadcast)."""
     for name, arr in (("q", q), ("dq", dq), ("tau", tau)):
@@ -208,7 +226,7 @@ def encode_state_items(q: np.ndarray, dq: np.ndarray, tau: np.ndarray, *, robot_
         ("Robot_Error", value_bool(robot_error)),
         ("Project_Run", value_bool(project_run)),
         ("Project_Pause", value_bool(project_pause)),
-        ("Safeguard_A", value_bool(False)),
+        ("Safeguard_A", value_bool(safeguard)),
         ("ESTOP", value_bool(estop)),
         ("Error_Code", value_int(error_code)),
         ("Joint_Angle", value_floats(np.degrees(q))),

@@ -29,7 +29,11 @@ class ListenError(ProtocolError):
 
 
 class ScriptError(ListenError):
-    """A script reply `ID,ERROR;n;...`: the message names the script and its failing lines."""
+    """A script reply `ID,ERROR;n;...`: the message names the script and its failing lines; `tid` is its id."""
+
+    def __init__(self, message: str, tid: str) -> None:
+        super().__init__(message)
+        self.tid = tid
 
 
 class CPError(ListenError):
@@ -191,7 +195,7 @@ class ListenProtocol:
                             ", ".join(map(str, lines)), _show_lines(body, lines))
             return ScriptReply(tid, lines)
         raise ScriptError(f"{self.source}: script {tid} refused (ERROR) at line(s) "
-                          f"{', '.join(map(str, lines)) or '?'}: {_show_lines(body, lines)}")
+                          f"{', '.join(map(str, lines)) or '?'}: {_show_lines(body, lines)}", tid)
 
     def _status(self, text: str) -> ListenStatus | TagStatus | ListenData:
         code, _, rest = text.partition(",")

@@ -6,27 +6,42 @@ import logging
 import socket
 
 from drivers.errors import DriverError, LinkLostError, ProtocolError
-from drivers.tm5.tm_packet import TMFramer, TMPacket
+from drivers.tm5.tm_packet import DEFAULT_MAX_LEN, FrameError, TMFramer, TMPacket
 
 log = logging.getLogger(__name__)
 
 _RECV_BYTES = 65536
 _MAX_RECVS_PER_POLL = 64  # bounds one poll's time even when the peer floods us
 _MAX_OUTBOX_BYTES = 1 << 16  # the robot stopped reading our scripts long before this much piles up
+# Bad frames are skipped (the framer resynchronises on the next `$`); this many bytes of them with no good
+# packet in between is a broken stream, not noise, and raises.  About eight data tables' worth.
+MAX_BAD_BURST_BYTES = 8192
 
 
 class TMLink:
-    """A connected socket plus its framer and outbox.  Nothing here blocks once `open` has returned."""
+    """A connected socket plus its framer and outbox.  Nothing here blocks once `open` has returned.
 
-    def __init__(self, sock: socket.socket, name: str) -> None:
+    A bad frame is skipped and the stream resynchronised on the next `$`; each run of bad frames (a burst,
+    ended by the next good packet) is logged once with the bytes it cost.  `bad_frames` and `dropped_bytes`
+    count them over the link's life.  A burst above `max_bad_burst_bytes` raises ProtocolError.
+    """
+
+    def __init__(self, sock: socket.socket, name: str, max_len: int = DEFAULT_MAX_LEN,
+                 max_bad_burst_bytes: int = MAX_BAD_BURST_BYTES) -> None:
         self.name = name
+        self.max_bad_burst_bytes = max_bad_burst_bytes
+        self.bad_frames = 0
+        self.dropped_bytes = 0
         self._sock: socket.socket | None = sock
-        self._framer = TMFramer(name)
+        self._framer = TMFramer(name, max_len)
         self._outbox = bytearray()
         self._deferred: DriverError | None = None
+        self._burst_bytes = 0
+        self._burst_frames = 0
+        self._burst_first = ""
 
     @classmethod
-    def open(cls, host: str, port: int, timeout_s: float, name: str) -> TMLink:
+    def open(cls, host: str, port: int, timeout_s: float, name: str, max_len: int = DEFAULT_MAX_LEN) -> TMLink:
         """Connect within `timeout_s` (LinkLostError naming the endpoint otherwise); TCP_NODELAY, non-blocking."""
         try:
             sock = socket.create_connection((host, port), timeout=timeout_s)
@@ -36,15 +51,16 @@ class TMLink:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sock.setblocking(False)
         log.info("%s: connected to %s:%d", name, host, port)
-        return cls(sock, name)
+        return cls(sock, name, max_len)
 
     @property
     def is_open(self) -> bool:
         return self._sock is not None
 
     def receive(self) -> list[TMPacket]:
-        """Every complete packet that arrived since the last call.  A broken frame or a closed link raises,
-        but only after the good packets before it were returned (on the next call)."""
+        """Every complete packet that arrived since the last call.  A closed link, or a burst of bad frames
+        over `max_bad_burst_bytes`, raises, but only after the good packets before it were returned (on the
+        next call)."""
         if self._deferred is not None:
             err, self._deferred = self._deferred, None
             raise err
@@ -63,11 +79,16 @@ class TMLink:
                 break
             self._framer.feed(chunk)
         packets: list[TMPacket] = []
-        try:
-            while (packet := self._framer.next_packet()) is not None:
-                packets.append(packet)
-        except ProtocolError as exc:
-            self._deferred = exc
+        while True:
+            try:
+                packet = self._framer.next_packet()
+            except FrameError as exc:  # the framer skipped past it: parse on from the next `$`
+                self._bad_frame(exc)
+                continue
+            if packet is None:
+                break
+            self._end_burst()
+            packets.append(packet)
         if lost is not None and self._deferred is None:
             self._deferred = self._lost(lost)
         if not packets and self._deferred is not None:
@@ -101,6 +122,25 @@ class TMLink:
         if sock is not None:
             sock.close()
 
+    def _bad_frame(self, exc: FrameError) -> None:
+        self.bad_frames += 1
+        self.dropped_bytes += exc.dropped
+        if not self._burst_frames:
+            self._burst_first = str(exc)
+        self._burst_frames += 1
+        self._burst_bytes += exc.dropped
+        if self._burst_bytes > self.max_bad_burst_bytes and self._deferred is None:
+            self._deferred = ProtocolError(
+                f"{self.name}: {self._burst_bytes} bytes in {self._burst_frames} bad frame(s) with no good packet "
+                f"between them (limit {self.max_bad_burst_bytes}); first: {_after_name(self._burst_first, self.name)}")
+            self._burst_bytes = self._burst_frames = 0
+
+    def _end_burst(self) -> None:
+        if self._burst_frames:
+            log.warning("%s: skipped %d bytes in %d bad frame(s) before the next good packet; first: %s", self.name,
+                        self._burst_bytes, self._burst_frames, _after_name(self._burst_first, self.name))
+            self._burst_bytes = self._burst_frames = 0
+
     def _require(self) -> socket.socket:
         if self._sock is None:
             raise LinkLostError(f"{self.name}: the link is closed")
@@ -110,3 +150,9 @@ class TMLink:
         self.close()
         log.warning("%s: link lost: %s", self.name, reason)
         return LinkLostError(f"{self.name}: {reason}")
+
+
+def _after_name(message: str, name: str) -> str:
+    """A framer's message without the link name it starts with (the caller's message names it once)."""
+    prefix = f"{name}: "
+    return message[len(prefix):] if message.startswith(prefix) else message

@@ -8,18 +8,22 @@ from typing import NoReturn
 from drivers.errors import ProtocolError
 
 HEADERS = ("TMSVR", "TMSCT", "TMSTA", "CPERR")
-MAX_DATA_LEN = 1 << 20  # a data table is ~1 kB and a long script a few tens of kB: more is a broken stream
-_MAX_LEN_DIGITS = len(str(MAX_DATA_LEN))
+MAX_DATA_LEN = 1 << 20  # the largest DATA `encode_packet` builds (a long script is a few tens of kB)
+# The largest LEN a framer believes by default: a data table is ~1 kB, a reply or status a few bytes.  A LEN
+# beyond what a link can carry is a broken field, refused at once rather than waited for.
+DEFAULT_MAX_LEN = 1 << 16
 _HEADER_LEN = 5
 _TRAILER_LEN = 6  # ",*" + two hex digits + CR LF
+_HEX_DIGITS = frozenset(b"0123456789abcdefABCDEF")
 
 
 class FrameError(ProtocolError):
     """A packet that breaks the framing; `cperr_code` is what the Listen node answers to it (01, 02 or 03)."""
 
-    def __init__(self, message: str, cperr_code: str) -> None:
+    def __init__(self, message: str, cperr_code: str, dropped: int = 0) -> None:
         super().__init__(message)
         self.cperr_code = cperr_code
+        self.dropped = dropped  # bytes the framer skipped to get past the bad packet
 
 
 @dataclass(frozen=True)
@@ -59,13 +63,19 @@ class TMFramer:
     """Cuts a byte stream into packets by their LEN field (DATA may hold commas, CR LF and binary).
 
     `feed` appends bytes; `next_packet` returns the next complete packet, None while one is incomplete,
-    and raises FrameError (a ProtocolError) for a bad header, length, trailer or checksum.  After an error the stream
-    cannot be resynchronised (LEN was not to be trusted), so the buffer is dropped: the caller closes
-    the link or starts over.
+    and raises FrameError (a ProtocolError) for a bad header, length, trailer or checksum.  Before raising it
+    skips to the next `$` after the bad packet's start (its LEN was not to be trusted, so its end is unknown):
+    the next call parses from there, verifying that packet's length, trailer and checksum in turn, so good
+    packets behind a bad one survive.  `dropped_bytes` counts what was skipped.
     """
 
-    def __init__(self, source: str = "TM") -> None:
+    def __init__(self, source: str = "TM", max_len: int = DEFAULT_MAX_LEN) -> None:
+        if not 1 <= max_len <= MAX_DATA_LEN:
+            raise ValueError(f"max_len must lie in 1..{MAX_DATA_LEN}, got {max_len!r}")
         self.source = source
+        self.max_len = max_len
+        self.dropped_bytes = 0
+        self._max_len_digits = len(str(max_len))
         self._buf = bytearray()
 
     @property
@@ -101,17 +111,21 @@ class TMFramer:
         header = bytes(buf[1:comma1]).decode("ascii", errors="replace")
         if header not in HEADERS:
             self._fail(f"unknown header {header!r} (expected one of {', '.join(HEADERS)})", "03")
-        comma2 = buf.find(b",", comma1 + 1, comma1 + 2 + _MAX_LEN_DIGITS)
+        comma2 = buf.find(b",", comma1 + 1, comma1 + 2 + self._max_len_digits)
         if comma2 < 0:
-            if len(buf) >= comma1 + 2 + _MAX_LEN_DIGITS:
-                self._fail(f"${header} length field too long: {bytes(buf[comma1 + 1:comma1 + 12])!r}")
+            if len(buf) >= comma1 + 2 + self._max_len_digits:
+                seg = bytes(buf[comma1 + 1:comma1 + 2 + self._max_len_digits])
+                if not seg.isdigit():
+                    self._fail(f"${header} LEN field {seg!r} is not a decimal number")
+                self._fail(f"${header} LEN field {seg.decode('ascii')}... exceeds the plausible maximum of "
+                           f"{self.max_len} bytes")
             return None
         len_field = bytes(buf[comma1 + 1:comma2])
         if not len_field.isdigit():
-            self._fail(f"${header} length field {len_field!r} is not a decimal number")
+            self._fail(f"${header} LEN field {len_field!r} is not a decimal number")
         length = int(len_field)
-        if length > MAX_DATA_LEN:
-            self._fail(f"${header} length {length} exceeds {MAX_DATA_LEN} bytes")
+        if length > self.max_len:
+            self._fail(f"${header} LEN field {length} exceeds the plausible maximum of {self.max_len} bytes")
         end_data = comma2 + 1 + length
         end = end_data + _TRAILER_LEN
         if len(buf) < end:
@@ -119,11 +133,10 @@ class TMFramer:
         trailer = bytes(buf[end_data:end])
         if trailer[:2] != b",*" or trailer[4:] != b"\r\n":
             self._fail(f"${header} packet of length {length} ends in {trailer!r}, expected ',*XX\\r\\n' "
-                       "(wrong length field?)")
-        try:
-            received = int(trailer[2:4].decode("ascii"), 16)
-        except ValueError:
+                       "(wrong LEN field?)")
+        if trailer[2] not in _HEX_DIGITS or trailer[3] not in _HEX_DIGITS:
             self._fail(f"${header} checksum {trailer[2:4]!r} is not two hex digits", "02")
+        received = int(trailer[2:4].decode("ascii"), 16)
         expected = checksum(bytes(buf[1:end_data + 1]))
         if received != expected:
             self._fail(f"${header} checksum {received:02X} does not match the packet's {expected:02X}", "02")
@@ -132,5 +145,10 @@ class TMFramer:
         return TMPacket(header, data)
 
     def _fail(self, message: str, cperr_code: str = "01") -> NoReturn:
-        self._buf.clear()
-        raise FrameError(f"{self.source}: {message}", cperr_code)
+        # The bad packet's own `$` is skipped: whatever follows up to the next `$` belongs to no packet
+        # this framer can trust.
+        nxt = self._buf.find(b"$", 1)
+        dropped = len(self._buf) if nxt < 0 else nxt
+        del self._buf[:dropped]
+        self.dropped_bytes += dropped
+        raise FrameError(f"{self.source}: {message}", cperr_code, dropped)

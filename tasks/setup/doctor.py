@@ -21,6 +21,7 @@ from drivers.errors import DriverError
 from drivers.interfaces import JointLimits
 from drivers.tm5.ethernet import TMEthernetArm
 from drivers.tm5.ethernet_config import TMEthernetConfig
+from drivers.tm5.ethernet_slave import SAFETY_ITEMS
 from drivers.tm5.modbus import TM5ModbusArm
 from drivers.tm5.table_check import check_arm
 from drivers.wacoh.driver import WacohSensor
@@ -88,7 +89,9 @@ class Doctor:
                 "node, Setting > Connection > Listen node enabled; docs/real-cell.md route B)"), run=alive)
             self._step("command_round_trip", self._round_trip, (
                 "the Listen node answers slowly: a direct cable, no other client on port 5890, project speed "
-                "100 % (docs/real-cell.md)"), run=node)
+                "100 %; a node that cannot keep up with the loop's rate: a longer loop.period_s, or (knowing the "
+                "commands then act later) devices.arm.settings.max_unanswered_scripts / max_reply_age_s "
+                "(docs/real-cell.md)"), run=node)
         port = self._step("sensor_port", self._sensor_connect, (
             "check devices.sensor.settings.port (the device exists, your user may open it: dialout group), "
             "the baud rate, and that the sensor is powered; a USB adapter's latency timer over the reply timeout: "
@@ -131,8 +134,11 @@ class Doctor:
             "Data_Table_Setting_TM_ROS_Default.xml)"))
         table = self._step("slave_table", self._slave_table, (
             "set the Ethernet Slave's Communication Mode to BINARY and its transmit table to TM's "
-            "Data_Table_Setting_TM_ROS_Default.xml (or tick Joint_Angle, Joint_Speed, Joint_Torque, Robot_Error, "
-            "ESTOP, Project_Run by hand)"), run=reach)
+            "Data_Table_Setting_TM_ROS_Default.xml (or tick Joint_Angle, Joint_Speed, Joint_Torque and "
+            f"{', '.join(SAFETY_ITEMS)} by hand)"), run=reach)
+        self._step("project_speed", self._project_speed, (
+            "set the project speed to 100 % in TMflow (Auto mode): below it the controller scales the streamed "
+            "joint speeds and the host's position loop, which assumes them as sent, lags and overshoots"), run=table)
         data = self._step("joint_data", self._register_map, (
             "the table's joint items do not read as TM5-700 joint data (degrees, deg/s, mN·m): check the items "
             "and their types in the Data Table Setting"), run=table)
@@ -181,11 +187,21 @@ class Doctor:
         self.arm.connect()  # refuses a STRING or JSON table, or one without the joint items, saying what to change
         table = self.arm.latest_table
         assert table is not None, "no data table arrived"
-        optional = [name for name in ("Robot_Error", "ESTOP", "Project_Run", "Project_Pause", "Robot_Link")
-                    if name not in table.items]
+        missing = table.missing_safety_items
         detail = f"binary table, {len(table.items)} items, joint angles, speeds and torques present"
-        assert not optional, f"{detail}; missing {', '.join(optional)}: the cell cannot see E-stop and errors"
-        return detail
+        assert not missing, (f"{detail}; missing {', '.join(missing)}: the cell cannot see the controller's stops "
+                             "and refuses to arm")
+        return f"{detail}, and {', '.join(SAFETY_ITEMS)}"
+
+    def _project_speed(self) -> str:
+        assert isinstance(self.arm, TMEthernetArm)
+        self.arm.read_state()
+        table = self.arm.latest_table
+        assert table is not None, "no data table arrived"
+        if table.project_speed is None:
+            return "Project_Speed is not in the table: unchecked"
+        assert table.project_speed == 100, f"Project_Speed is {table.project_speed} %, not 100 %"
+        return "Project_Speed 100 %"
 
     def _modbus_cross_check(self) -> str:
         assert isinstance(self.arm, TMEthernetArm)
@@ -213,7 +229,16 @@ class Doctor:
         have = self.arm.config.command_latency_periods
         assert have >= needed, (f"{detail}: devices.arm.settings.command_latency_periods is {have}, this arm "
                                 f"needs {needed} (2 + the round trip's periods beyond its first)")
-        return f"{detail}; command_latency_periods {have} covers it"
+        # The replies to scripts streamed at the loop's rate: the driver stops the arm when more than
+        # max_unanswered_scripts are outstanding or the oldest is older than max_reply_age_s.
+        cfg = self.arm.config
+        lag = self.arm.script_reply_lag(period_s=self.s.period_s)
+        streamed = f"{lag.sent} scripts at {1 / self.s.period_s:.0f} Hz: {lag.summary()}"
+        assert lag.answered == lag.sent, f"{detail}; {streamed}: the Listen node left scripts unanswered"
+        assert lag.max_unanswered <= cfg.max_unanswered_scripts and lag.max_s <= cfg.max_reply_age_s, (
+            f"{detail}; {streamed}: over max_unanswered_scripts {cfg.max_unanswered_scripts} or max_reply_age_s "
+            f"{cfg.max_reply_age_s * 1e3:.0f} ms, the driver would stop the arm at this rate")
+        return f"{detail}; command_latency_periods {have} covers it; {streamed}"
 
     def _connect(self) -> str:
         assert isinstance(self.arm, TM5ModbusArm)
@@ -258,12 +283,26 @@ class Doctor:
     def _status(self) -> str:
         assert self.arm is not None
         st = self.arm.read_state().status
+        held = (self._tm_held() if isinstance(self.arm, TMEthernetArm) else
+                "protective stop (robot-side program holding)")
         problems = [what for what, on in (("E-stop pressed", st.estop), ("controller error", st.error),
-                                          ("protective stop (robot-side program holding)", st.protective_stop),
+                                          (held, st.protective_stop),
                                           ("project not running", not st.project_running),
                                           ("project paused", st.paused)) if on]
         assert not problems, "; ".join(problems)
         return "no E-stop, no error, project running"
+
+    def _tm_held(self) -> str:
+        """What makes TM's table read as a protective stop."""
+        assert isinstance(self.arm, TMEthernetArm)
+        table = self.arm.latest_table
+        if table is None:
+            return "protective stop"
+        missing = table.missing_safety_items
+        why = [w for w, on in (("Safeguard_A triggered", table.safeguard is True),
+                               ("Robot_Link 0", table.robot_link is False),
+                               (f"table lacks {', '.join(missing)}", bool(missing))) if on]
+        return f"protective stop ({'; '.join(why)})" if why else "protective stop"
 
     def _timing(self) -> str:
         assert self.arm is not None
