@@ -98,6 +98,8 @@ def test_the_sensor_port_check_reads_the_usb_adapters_latency_timer(emulated, mo
     by_name = {c.name: c for c in checks}
     port = by_name["sensor_port"]
     assert f"USB adapter latency timer {timer_ms} ms" in port.detail
+    # The emulated sensor numbers its records one per reply, and the driver learnt that at connect.
+    assert "record number steps by one per reply" in port.detail
     if over:  # longer than the reply timeout: nearly every read would come late
         assert port.status == "fail" and "reply timeout" in port.detail and "latency timer" in port.fix
         assert by_name["sensor_line"].status == "skipped"

@@ -331,6 +331,10 @@ class Doctor:
         self.sensor.connect()
         cfg = self.sensor.config
         detail = f"{cfg.port} answers ({cfg.mode} mode)"
+        if cfg.mode == "poll":
+            # What a lost reply costs depends on it (docs/real-cell.md, section 3): one reading, or ~0.1 s.
+            detail += (", record number steps by one per reply" if self.sensor.counter_steps_by_one else
+                       ", record number does not step by one per reply (a lost reply costs ~0.1 s of readings)")
         timer = self.sensor.adapter_latency_ms()
         if timer is not None:
             # A USB adapter holds a short reply back up to its latency timer: longer than the reply timeout, a
