@@ -194,3 +194,18 @@ def test_the_reader_reads_the_documented_inputs_only() -> None:
         assert table.project_running and not table.estop and not table.error
         emulator.press_estop()
         wait_for(lambda: read_modbus_table("127.0.0.1", emulator.port, 1.0).estop, what="input 7208 read alone")
+
+
+def test_the_emulated_cells_safeguard_and_listen_lag_commands_fail_their_checks(emulator: TMEthernetEmulator) -> None:
+    _apply(["safeguard"], emulator, None)
+    checks = run_doctor(make_arm(emulator, None))
+    assert checks["estop_and_errors"].status == "fail" and "Safeguard_A" in checks["estop_and_errors"].detail
+    _apply(["clear"], emulator, None)
+    _apply(["listen_lag", "100"], emulator, None)  # 100 ms a packet: the node falls behind a 64 Hz stream
+    checks = run_doctor(make_arm(emulator, None))
+    assert checks["estop_and_errors"].status == "pass"
+    assert checks["command_round_trip"].status == "fail", checks["command_round_trip"]
+    _apply(["clear"], emulator, None)  # the lag too
+    assert emulator.script_interval_s == 0.0
+    with pytest.raises(ValueError, match="listen_lag takes 1 argument"):
+        _apply(["listen_lag"], emulator, None)
