@@ -7,7 +7,7 @@ import re
 import socket
 import struct
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -22,7 +22,7 @@ from drivers.errors import (
     ProtocolError,
     StaleDataError,
 )
-from drivers.interfaces import JointLimits, Lifecycle
+from drivers.interfaces import Lifecycle
 from drivers.tm5.ethernet import TMEthernetArm
 from drivers.tm5.ethernet_config import TMEthernetConfig
 from drivers.tm5.ethernet_slave import (
@@ -52,10 +52,7 @@ from drivers.tm5.tm_packet import FrameError, TMFramer, TMPacket, encode_packet
 from sim.kinematic_plant import KinematicPlant
 from sim.tm_ethernet_emulator import TMEthernetEmulator
 from sim.tm_listen_node import ListenNode
-
-DT = 0.008
-LIMITS = JointLimits(lower=np.full(6, -2 * math.pi), upper=np.full(6, 2 * math.pi), velocity=np.full(6, math.pi),
-                     effort=np.full(6, 150.0))
+from tests.tm_ethernet_fixtures import DT, LIMITS, make_arm, start, wait_for
 
 # The worked examples of docs/tm-ethernet-listen.md.
 VECTORS = [
@@ -249,23 +246,9 @@ def test_config_loads_bounded_with_one_line_errors() -> None:
 
 
 # ------------------------------------------------------------------------------------------------ on loopback
-def wait_for(cond: Callable[[], bool], timeout: float = 3.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.005)
-
-
 @pytest.fixture
 def plant() -> KinematicPlant:
     return KinematicPlant(dt=DT)
-
-
-def start(plant: KinematicPlant, **kw: Any) -> TMEthernetEmulator:
-    emu = TMEthernetEmulator(plant, **kw)
-    emu.start()
-    return emu
 
 
 @pytest.fixture
@@ -273,12 +256,6 @@ def emulator(plant: KinematicPlant) -> Iterator[TMEthernetEmulator]:
     emu = start(plant)
     yield emu
     emu.stop()
-
-
-def make_arm(emu: TMEthernetEmulator, **overrides: Any) -> TMEthernetArm:
-    cfg = TMEthernetConfig(host="127.0.0.1", slave_port=emu.slave_port, listen_port=emu.listen_port,
-                           connect_timeout_s=2.0, **overrides)
-    return TMEthernetArm(cfg, LIMITS, DT)
 
 
 @pytest.fixture

@@ -24,7 +24,7 @@ from sim.kinematic_plant import KinematicPlant
 from sim.tm_ethernet_emulator import TMEthernetEmulator
 from sim.tm_listen_node import ListenNode
 from tasks.setup.doctor import Doctor, DoctorSettings
-from tests.test_tm_ethernet import DT, LIMITS, make_arm, start, wait_for
+from tests.tm_ethernet_fixtures import DT, LIMITS, make_arm, start, wait_for
 
 
 @pytest.fixture

@@ -24,7 +24,7 @@ from drivers.tm5.ethernet_slave import (
 from sim.kinematic_plant import KinematicPlant
 from sim.tm_ethernet_emulator import TMEthernetEmulator
 from tasks.setup.doctor import Doctor, DoctorSettings
-from tests.test_tm_ethernet import LIMITS, make_arm, start, wait_for
+from tests.tm_ethernet_fixtures import LIMITS, make_arm, start, wait_for
 
 ALL_ITEMS = [name for name, _ in encode_state_items(np.zeros(6), np.zeros(6), np.zeros(6))]
 
