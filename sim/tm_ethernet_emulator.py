@@ -105,6 +105,7 @@ class TMEthernetEmulator(EmulatorLoop):
         self.script_interval_s = script_interval_s
         self.project_speed = 100  # % (Project_Speed in the table)
         self.broadcasts = 0
+        self.modbus_reads = 0  # requests served from the controller's Modbus table
         self.published: deque[ArmState] = deque(maxlen=256)
         self.cycles = 0
         self._rng = random.Random(seed)
@@ -317,6 +318,7 @@ class TMEthernetEmulator(EmulatorLoop):
         """Reads of the table get the plant as it is now; the controller's coils and user area belong to
         route A's program, which this emulator does not run."""
         if function_code in (2, 4):
+            self.modbus_reads += 1
             now = time.monotonic()
             st = self.plant.measured_state()
             self._table.publish(self.plant, st.q, error=self._error(now) or st.status.error,

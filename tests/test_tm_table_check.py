@@ -124,14 +124,24 @@ def test_a_port_that_never_answers_is_one_line() -> None:
     assert str(err.value) == f"TM Modbus table 127.0.0.1:{port}: read input registers 7013: no reply within 200 ms"
 
 
-def test_arming_checks_the_table_once(arm: TMEthernetArm, emulator: TMEthernetEmulator) -> None:
+def test_arming_checks_the_table_once_per_connection(arm: TMEthernetArm, emulator: TMEthernetEmulator) -> None:
     arm.arm()
     assert arm.lifecycle is Lifecycle.ARMED
+    reads = emulator.modbus_reads
+    assert reads > 0
+    # The control loop's re-arm after a stop sends no Modbus request: it would block the loop.
     arm.stop()
+    arm.arm()
+    assert arm.lifecycle is Lifecycle.ARMED and emulator.modbus_reads == reads
+    arm.stop()
+    arm.confirm_stop()
+    # New links are checked again on their first arm.
+    arm.disconnect()
     emulator.offset_modbus_joints(2.0)
+    arm.connect()
     with pytest.raises(LifecycleError, match=r"^cannot arm: Modbus table .* 2\.000 deg off .*modbus_port: null"):
         arm.arm()
-    assert arm.lifecycle is not Lifecycle.ARMED
+    assert arm.lifecycle is not Lifecycle.ARMED and emulator.modbus_reads > reads
 
 
 def test_arming_refuses_an_unreadable_table_in_one_line(emulator: TMEthernetEmulator) -> None:

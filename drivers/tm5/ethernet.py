@@ -73,7 +73,9 @@ class TMEthernetArm(Arm):
     ContinueVJog's reply (bounded by reply_timeout_s; before a control loop starts).  A re-arm on the same
     connection (the control loop's, after a stop) waits for nothing: the node's state is known from its
     messages and ContinueVJog's reply is checked on later polls like a streamed script's.  The optional
-    Modbus cross-check (modbus_port) runs on every arm and does block on its request.
+    Modbus cross-check (modbus_port) blocks on its request, so it runs on the first arm after the links open
+    (before a control loop starts): it establishes that the Ethernet Slave's table is this controller's, which
+    holds while the links stay up; `connect` after a drop checks again.
     """
 
     def __init__(self, config: TMEthernetConfig, limits: JointLimits, dt: float, speed_scale: float = 1.0) -> None:
@@ -88,6 +90,7 @@ class TMEthernetArm(Arm):
         self._latest: SlaveState | None = None
         self._latest_t = 0.0
         self._seq = 0
+        self._cross_checked = False  # the Modbus cross-check passed on these links
         self._warned_speed: int | None = None
         self._warned_untested = False
         self.velocity_loop = VelocityLoop(limits, dt, config.position_gain, config.command_latency_periods,
@@ -200,6 +203,7 @@ class TMEthernetArm(Arm):
             log.warning("TMEthernetArm %s: the real-hardware path is UNTESTED on a physical arm (it has only run "
                         "against sim.tm_ethernet_emulator); keep a hand on the E-stop", self.endpoint)
             self._warned_untested = True
+        self._cross_checked = False  # new links: the first arm checks the Modbus table again
         try:
             self._open_slave()
             try:
@@ -239,8 +243,9 @@ class TMEthernetArm(Arm):
         known = self._node.streaming_confirmed and self._node.in_node is True
         if not known and not self._query_listen_status().in_node:
             raise LifecycleError(f"TM {self.endpoint}: the project is not in its Listen node: {_NODE_HINT}")
-        if self.config.modbus_port is not None:  # the controller's own Modbus table must tell the same story
-            check_before_arming(self)
+        if self.config.modbus_port is not None and not self._cross_checked:
+            check_before_arming(self)  # the controller's own Modbus table must tell the same story
+            self._cross_checked = True
         tid = self._node.send_script([continue_vjog()])
         if not known:
             self._wait_for(lambda: not self._backlog.pending(tid), f"ContinueVJog() (script {tid})")

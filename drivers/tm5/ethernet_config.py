@@ -17,8 +17,9 @@ class TMEthernetConfig:
     slave_port: int = 5891  # Ethernet Slave: the data table broadcast ($TMSVR)
     listen_port: int = 5890  # Listen node: scripts ($TMSCT) and status ($TMSTA)
     # The controller's own Modbus table (joint angles, error, E-stop, running) read as a cross-check of the
-    # Ethernet Slave's by doctor, status and arm(); None: the cell has no Modbus server to read (route B needs
-    # none: enabling it is a separate TMflow switch, so the check is asked for, not assumed).  TM's is 502.
+    # Ethernet Slave's by doctor, status and the first arm() on new links; None: the cell has no Modbus server
+    # to read (route B needs none: enabling it is a separate TMflow switch, so the check is asked for, not
+    # assumed).  TM's is 502.
     modbus_port: int | None = None
     connect_timeout_s: float = 5.0  # per socket connect, and for the first data table to arrive
     link_lost_after_s: float = 1.0  # no table for this long: the link is lost (TM's own drivers use 1 s)
