@@ -27,6 +27,7 @@ from app.common import (
 from app.progress import heartbeat
 from app.sensing import FORCE_SOURCES, ensure_virtual_artefacts, make_force_source, with_guard
 from app.tasks_registry import robot_for
+from bench.machine import cpu_model, machine_load, reference_ms
 from cell.cliargs import COUNT, float_in, int_in
 from cell.collision.config import REACTIONS
 from cell.config import check_task_speeds, load_config
@@ -437,16 +438,10 @@ def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     b.set_defaults(func=cmd_bench)
 
 
-# What every bench's summary adds about its run: its wall time, the load averages before and after, the cores.
-BENCH_CONTEXT_KEYS = ("bench_wall_s", "load_avg_before", "load_avg_after", "cpu_count")
-
-
-def _machine_load() -> list[float]:
-    """The 1, 5 and 15 minute load averages ([] where the platform has none)."""
-    try:
-        return [round(x, 2) for x in os.getloadavg()]
-    except OSError:
-        return []
+# What every bench's summary adds about its run: its wall time, the load averages before and after, the cores,
+# the processor and the time of a fixed piece of work on it (bench/machine.py: a machine's own speed).
+BENCH_CONTEXT_KEYS = ("bench_wall_s", "load_avg_before", "load_avg_after", "cpu_count", "cpu_model",
+                      "machine_reference_ms")
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -455,10 +450,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise ConfigError(f"bench {args.what}: unknown benchmark")
     if getattr(args, "view", False) and len(args.only if args.only is not None else range(args.trials)) != 1:
         raise ConfigError("bench peg-in-hole --view shows one trial: add --only K (or --trials 1)")
-    t0, load_before = time.perf_counter(), _machine_load()
+    t0, load_before, reference = time.perf_counter(), machine_load(), reference_ms()
     out = chosen.run(args)
-    # Every bench says how long it took and what else the cores were doing: a slow run from a slow machine.
-    context = (round(time.perf_counter() - t0, 2), load_before, _machine_load(), os.cpu_count())
+    # Every bench says how long it took, what else the cores were doing and how fast the machine is: a slow run
+    # from a busy or a slow machine.
+    context = (round(time.perf_counter() - t0, 2), load_before, machine_load(), os.cpu_count(), cpu_model(),
+               reference)
     for key, value in zip(BENCH_CONTEXT_KEYS, context, strict=True):
         out.setdefault(key, value)
     emit(out, args.json)

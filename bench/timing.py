@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from bench.machine import machine_load
 from cell.config import CellConfig
 from cell.control.loop import ControlLoop
 from cell.control.safety import SafetyMonitor
@@ -26,14 +27,6 @@ from sim.kinematic_plant import KinematicPlant
 from sim.tm5_emulator import TM5Emulator
 from sim.wacoh_emulator import WacohEmulator
 from tasks.wipe import WipeTask, load_wipe_config
-
-
-def machine_load() -> list[float]:
-    """The 1, 5 and 15 minute load averages (what else the cores were doing: wall times depend on it)."""
-    try:
-        return [round(x, 2) for x in os.getloadavg()]
-    except OSError:  # not available on this platform
-        return []
 
 
 def bench_sim(cfg: CellConfig, seed: int | None = None, repeats: int = 2) -> dict[str, Any]:

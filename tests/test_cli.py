@@ -143,6 +143,7 @@ def test_bench_sim_reports_a_real_time_factor(capsys):
     # The run's context beside it, as every bench reports it (its values are the machine's, not checked here).
     assert set(BENCH_CONTEXT_KEYS) <= out.keys()
     assert len(out["load_avg_before"]) == 3 and out["cpu_count"] >= 1
+    assert out["cpu_model"] and 0 < out["machine_reference_ms"] < 1e4
 
 
 @pytest.mark.slow
