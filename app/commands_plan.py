@@ -96,9 +96,10 @@ def cmd_plan(args: argparse.Namespace) -> int:
         unknown = [p for p in only if p not in plan_file.paths]
         if unknown:
             raise ConfigError(f"{args.plans}: no path named '{unknown[0]}' (known: {', '.join(plan_file.paths)})")
+    # The prepared model is the cell's own (made, when missing, as `run` makes it), before the plans' TCP limit.
+    model_path = None if args.model == NOMINAL else args.model or prepared_model(cfg, cell_kind(cfg, args.cell))
     cfg.safety = replace(cfg.safety, max_tcp_speed=plan_file.max_tcp_speed)
     robot = robot_for(cfg, "wipe")
-    model_path = None if args.model == NOMINAL else args.model or prepared_model(cfg, cell_kind(cfg, args.cell))
     predictor, model_name, terms = torque_model(cfg, robot, model_path)
     collisions = CollisionChecker.for_scene(robot, replace(cfg.scene, kind="free"))
 

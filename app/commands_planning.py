@@ -56,9 +56,10 @@ def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
 
     cfg = load_cell_config(args)
     plan_file = load_plan_file(PLANS)
+    # The prepared model is the cell's own (made, when missing, as `run` makes it), before the plans' TCP limit.
+    model_path = None if args.model == NOMINAL else args.model or prepared_model(cfg, "sim")
     cfg.safety = replace(cfg.safety, max_tcp_speed=plan_file.max_tcp_speed)  # as `main.py plan` runs them
     robot = robot_for(cfg, "wipe")
-    model_path = None if args.model == NOMINAL else args.model or prepared_model(cfg, "sim")
     predictor, model_name, terms = torque_model(cfg, robot, model_path)
     effort = robot.limits.effort
     if not np.all(np.isfinite(effort) & (effort > 0)):

@@ -61,7 +61,9 @@ def prepared_model_name(cfg: CellConfig, robot: RobotModel) -> str | None:
 
 def prepared_model(cfg: CellConfig, kind: str) -> str:
     """The wipe tool's prepared hybrid model: the plan's torque limits are the arm's own (rotor inertia,
-    friction).  Missing on a simulated cell it is prepared now; on the real arm the command says how."""
+    friction).  Missing on a simulated cell it is prepared now, on `cfg` as the cell's config gives it (its
+    collection keeps to the cell's limits: a config changed for planning would collect another dataset than
+    `run` does); on the real arm the command says how."""
     prepared = cfg.virtual_sensor.path("model", "wipe")
     if not (prepared / "model.json").exists():
         if not is_simulated(kind):

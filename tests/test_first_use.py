@@ -6,7 +6,10 @@ import json
 
 import pytest
 
+from app.planning_model import PLANS
+from cell.config import load_config
 from drivers.errors import ConfigError
+from tasks.setup.plan import load_plan_file
 from main import main
 
 
@@ -40,16 +43,21 @@ def test_plan_without_a_prepared_model_on_the_real_cell_says_how(capsys):
     assert "main.py prepare --tool wipe --cell real" in err and "--model nominal" in err
 
 
-def test_plan_without_a_prepared_model_on_the_simulated_cell_prepares_it(monkeypatch, capsys):
+@pytest.mark.parametrize("argv", [["plan", "--cell", "sim"], ["bench", "planning"]])
+def test_plan_without_a_prepared_model_on_the_simulated_cell_prepares_it(monkeypatch, capsys, argv):
+    """Prepared as `run` prepares it: on the cell's own limits, not the plans' TCP limit (the collection keeps to
+    the TCP speed limit, so a raised one would collect another dataset, and the model would depend on which
+    command ran first)."""
     calls = []
 
     def fake_prepare(cfg, tool, kind, seed, samples, force):
-        calls.append((tool, kind))
+        calls.append((tool, kind, cfg.safety.max_tcp_speed))
         raise ConfigError("stop here: the test only checks that prepare is asked for")
 
     monkeypatch.setattr("app.planning_model.run_prepare", fake_prepare)
-    assert main(["plan", "--cell", "sim"]) == 2
-    assert calls == [("wipe", "sim")]
+    assert main(argv) == 2
+    assert calls == [("wipe", "sim", load_config().safety.max_tcp_speed)]
+    assert load_plan_file(PLANS).max_tcp_speed != load_config().safety.max_tcp_speed  # what the check tells apart
     assert "stop here" in capsys.readouterr().err
 
 
