@@ -9,8 +9,8 @@ import pytest
 from app.planning_model import PLANS
 from cell.config import load_config
 from drivers.errors import ConfigError
-from tasks.setup.plan import load_plan_file
 from main import main
+from tasks.setup.plan import load_plan_file
 
 
 def test_calibrate_without_a_model_on_the_real_cell_says_to_prepare(capsys):
