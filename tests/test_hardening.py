@@ -313,6 +313,24 @@ def test_a_column_of_mixed_kinds_fails_the_recording_not_the_writer(tmp_path):
     assert rec.closed
 
 
+def test_a_word_in_a_column_of_numbers_fails_the_recording_at_once(tmp_path):
+    from cell.data.recorder import Recorder, read_log
+    from drivers.errors import RecordingError
+
+    rec = Recorder(tmp_path / "run", chunk_rows=2)
+    rec.append({"t": 0.0, "fz": 1.5, "state": "wipe"})
+    rec.append({"t": 0.1, "state": "wipe"})  # a missing number: NaN
+    rec.append({"t": 0.2, "fz": 2, "state": "done"})  # an int among floats: a float
+    with pytest.raises(RecordingError, match=r"part-00001\.parquet: cannot write the step log: column 'fz' holds a "
+                                             r"str among numbers"):
+        rec.append({"t": 0.3, "fz": "high", "state": "done"})
+    with pytest.raises(RecordingError, match="column 'fz'"):
+        rec.close()
+    log = read_log(tmp_path / "run").to_pydict()  # the part before the failure stays readable (NaN != NaN)
+    assert log["t"] == [0.0, 0.1] and log["state"] == ["wipe"] * 2
+    assert log["fz"][0] == 1.5 and log["fz"][1] != log["fz"][1]
+
+
 def test_no_part_after_one_that_failed_is_written(tmp_path, monkeypatch):
     """A log with a hole in it would read as a jump in time: after a failed part, later ones are refused."""
     import pyarrow.parquet as pq
