@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from bench.planning_calibration import (
     CALIBRATION_SEED,
+    EXERCISED_SHARE,
     calibrate,
     calibrate_trust,
     kinematic_calibration_key,
@@ -170,7 +171,7 @@ def model_trust(s: PlanningSetup) -> dict[str, Any]:
            "exact_smoothing_stop_s": s.pcfg.exact_smoothing_stop_s,
            "torque_references": TRUST_TORQUE_PATHS, "toppra_gridpoints": s.pcfg.toppra_gridpoints,
            "exact_step": "rest-to-rest average, one sample at rest",
-           "per_joint": True, "noise_seed": CALIBRATION_SEED}
+           "per_joint": True, "noise_seed": CALIBRATION_SEED, "exercised_share": EXERCISED_SHARE}
     return load_or_calibrate(s.artefacts / "model_trust.json", key,
                              lambda: calibrate_trust(planner, trust_reference_set(s), s.calibration_run, limit))
 

@@ -28,7 +28,7 @@ from cell.data.atomic import write_atomic
 from cell.model.robot import RobotModel
 from cell.planning.baselines import KinematicPlanner
 from cell.planning.config import PlannerConfig
-from cell.planning.planner import Planner, PlanningError, TimedTrajectory
+from cell.planning.planner import PlannerBase, PlanningError, TimedTrajectory
 
 log = logging.getLogger(__name__)
 # The reference paths' random draw and the plant's noise in the calibration runs: fixed, apart from any bench
@@ -36,6 +36,9 @@ log = logging.getLogger(__name__)
 # motor limit with the noise, and a bisection step is that fine).
 CALIBRATION_SEED = 1000
 Run = Callable[[TimedTrajectory], dict[str, Any]]  # execute on the plant -> {"outcome", "peak_ratio", ...}
+# A joint counts as tested by the trust's reference runs when some reference plan loads it to this share of its
+# planning limit: only such joints may use more than the shared trust.
+EXERCISED_SHARE = 0.9
 
 
 def kinematic_calibration_key(arm: dict[str, Any], pcfg: PlannerConfig) -> dict[str, Any]:
@@ -125,23 +128,39 @@ def calibrate(make: Callable[[np.ndarray], KinematicPlanner], robot: RobotModel,
             "executions": sum(len(c["runs"]) for c in checks)}
 
 
-def calibrate_trust(planner: Planner, ref: list[tuple[str, np.ndarray]], run: Run, limit_fraction: float,
-                    steps: int = 5, lo: float = 0.7, hi: float = 1.0, joint_steps: int = 4) -> dict[str, Any]:
+def exercised_joints(planner: PlannerBase, ref: list[tuple[str, np.ndarray]], scale: np.ndarray,
+                     share: float = EXERCISED_SHARE) -> list[int]:
+    """The joints (0-based) whose planned torque reaches `share` of their planning limit on some reference path
+    planned at `scale`: those whose bound the reference runs have tested on the plant."""
+    peak = np.zeros(len(scale))
+    for _, w in ref:
+        try:
+            peak = np.maximum(peak, planner.excess(planner.plan(w, scale), scale))
+        except PlanningError:
+            continue
+    return [int(j) for j in np.nonzero(peak >= share)[0]]
+
+
+def calibrate_trust(planner: PlannerBase, ref: list[tuple[str, np.ndarray]], run: Run, limit_fraction: float,
+                    steps: int = 5, lo: float = 0.7, hi: float = 1.0, joint_steps: int = 4,
+                    exercised_share: float = EXERCISED_SHARE) -> dict[str, Any]:
     """The torque-aware planners' one setting per arm, found the same way on the same paths: the share of the
     planning limit (`torque_scale`) the model may use so that the plant's torques stay within the limit.  A
     model fitted on gentler motions under-predicts the torques of the fastest ones, and not on every joint
     alike: first one share for all joints is bisected (`fraction`); then the joints whose measured torque
-    ended a failing check keep it, and one share for the others is bisected between it and `hi` with those
-    held (`per_joint`: what the planners use).  A joint that never limited a reference run is not held back
-    by another joint's error."""
+    ended a failing check keep it, and one share for the joints the reference plans load to their bound
+    (`exercised_joints`) is bisected between it and `hi` with the rest held (`per_joint`: what the planners
+    use).  A joint that never limited a reference run is not held back by another joint's error; a joint the
+    references never loaded keeps the shared share, since nothing measured it there."""
     n = planner.plan(ref[0][1]).q.shape[1]
     best, checks = bisect_fraction(lambda f: lambda w: planner.plan(w, np.full(n, f)), ref, run, limit_fraction,
                                    steps, lo, hi, "model trust")
     binding = sorted({c["runs"][-1]["joint"] for c in checks if not c["ok"] and c["runs"][-1].get("joint") is not None})
     per_joint = np.full(n, best)
+    exercised = exercised_joints(planner, ref, per_joint, exercised_share) if binding and best < hi else []
     joint_checks: list[dict[str, Any]] = []
-    if binding and best < hi and joint_steps > 0:
-        held = np.isin(np.arange(n), binding)
+    if binding and best < hi and joint_steps > 0 and set(exercised) - set(binding):
+        held = ~np.isin(np.arange(n), sorted(set(exercised) - set(binding)))
 
         def scale(f: float) -> np.ndarray:
             return np.where(held, best, f)
@@ -151,6 +170,7 @@ def calibrate_trust(planner: Planner, ref: list[tuple[str, np.ndarray]], run: Ru
                                                lo_known_ok=True)
         per_joint = scale(max(others, best))
     return {"fraction": best, "per_joint": per_joint.round(4).tolist(), "binding_joints": [j + 1 for j in binding],
+            "exercised_joints": [j + 1 for j in exercised],
             "limit_fraction": limit_fraction, "reference_paths": [n for n, _ in ref], "checks": checks,
             "joint_checks": joint_checks,
             "executions": sum(len(c["runs"]) for c in checks + joint_checks)}
