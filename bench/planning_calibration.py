@@ -28,7 +28,7 @@ from cell.data.atomic import write_atomic
 from cell.model.robot import RobotModel
 from cell.planning.baselines import KinematicPlanner
 from cell.planning.config import PlannerConfig
-from cell.planning.planner import PlannerBase, PlanningError, TimedTrajectory
+from cell.planning.planner import PlanningError, TimedTrajectory, ToppraPlanner
 
 log = logging.getLogger(__name__)
 # The reference paths' random draw and the plant's noise in the calibration runs: fixed, apart from any bench
@@ -128,7 +128,7 @@ def calibrate(make: Callable[[np.ndarray], KinematicPlanner], robot: RobotModel,
             "executions": sum(len(c["runs"]) for c in checks)}
 
 
-def exercised_joints(planner: PlannerBase, ref: list[tuple[str, np.ndarray]], scale: np.ndarray,
+def exercised_joints(planner: ToppraPlanner, ref: list[tuple[str, np.ndarray]], scale: np.ndarray,
                      share: float = EXERCISED_SHARE) -> list[int]:
     """The joints (0-based) whose planned torque reaches `share` of their planning limit on some reference path
     planned at `scale`: those whose bound the reference runs have tested on the plant."""
@@ -141,7 +141,7 @@ def exercised_joints(planner: PlannerBase, ref: list[tuple[str, np.ndarray]], sc
     return [int(j) for j in np.nonzero(peak >= share)[0]]
 
 
-def calibrate_trust(planner: PlannerBase, ref: list[tuple[str, np.ndarray]], run: Run, limit_fraction: float,
+def calibrate_trust(planner: ToppraPlanner, ref: list[tuple[str, np.ndarray]], run: Run, limit_fraction: float,
                     steps: int = 5, lo: float = 0.7, hi: float = 1.0, joint_steps: int = 4,
                     exercised_share: float = EXERCISED_SHARE) -> dict[str, Any]:
     """The torque-aware planners' one setting per arm, found the same way on the same paths: the share of the
