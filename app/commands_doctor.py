@@ -20,7 +20,7 @@ EMULATED_TAIL_PERIODS = 3.0  # the emulators share this machine's CPU (sim/emula
 
 
 def add_doctor_parser(sub: Any) -> None:
-    """`doctor --cell real|emulated [--tare-s S] [--inject CMD]... [--json]`."""
+    """`doctor --cell real|emulated [--tare-s S] [--inject CMD]... [--stream-stop] [--json]`."""
 
     dr = sub.add_parser("doctor", help="bring-up checks of the arm and sensor wiring: named, pass/fail, what to do")
     dr.add_argument("--cell", choices=("real", "emulated"), default="real",
@@ -29,6 +29,9 @@ def add_doctor_parser(sub: Any) -> None:
     dr.add_argument("--inject", action="append", default=None, metavar="CMD",
                     help="emulated cell: a fault command for the emulator before the checks (repeatable; "
                          "e.g. 'freeze', 'estop', 'delay 20', 'sensor drop 0.5'; sim/serve_cell.py lists them)")
+    dr.add_argument("--stream-stop", action="store_true",
+                    help="TM Ethernet route: also measure what velocity mode does when the host stops streaming; "
+                         "MOVES the last wrist joint about 4 degrees (tool clear, hand on the E-stop)")
     dr.add_argument("--config", type=Path, default=None, help="cell config YAML (default config/cell.yaml)")
     dr.add_argument("--seed", type=SEED, default=None, help="plant seed (emulated cell)")
     dr.add_argument("--json", action="store_true", help="print one JSON object as the last stdout line")
@@ -44,7 +47,8 @@ def cmd_doctor(args: argparse.Namespace) -> int:
         raise ConfigError("doctor --inject: faults can be injected into the emulated cell only (--cell emulated)")
     settings = DoctorSettings(period_s=cfg.loop.period_s, slow_fraction=cfg.loop.slow_cycle_fraction,
                               tare_s=args.tare_s,
-                              tail_periods=EMULATED_TAIL_PERIODS if args.cell == "emulated" else 1.0)
+                              tail_periods=EMULATED_TAIL_PERIODS if args.cell == "emulated" else 1.0,
+                              stream_stop=args.stream_stop)
     holder: Any
     if args.cell == "emulated":
         from sim.emulated import EmulatedCell

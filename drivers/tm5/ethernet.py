@@ -42,6 +42,7 @@ from drivers.tm5.listen import (
 )
 from drivers.tm5.listen_backlog import ReplyLag
 from drivers.tm5.listen_session import ListenSession
+from drivers.tm5.stream_stop import StreamStop, stream_stop
 from drivers.tm5.table_check import check_before_arming
 from drivers.tm5.tm_link import TMLink
 from drivers.tm5.tm_packet import TMPacket
@@ -187,6 +188,54 @@ class TMEthernetArm(Arm):
         median = float(np.median(lags)) if lags else float("nan")
         return ReplyLag(sent=count, answered=len(lags), median_s=median, max_s=lags[-1] if lags else float("nan"),
                         max_unanswered=most)
+
+    def stream_stop_probe(self, joint: int = 5, speed_rad_s: float = 0.05, stream_s: float = 0.3,
+                          watch_s: float = 1.0) -> StreamStop:
+        """MOVES THE ARM: arm, stream `speed_rad_s` on one joint (0-based; default the last wrist joint) for
+        `stream_s` at the control period, then send nothing for `watch_s` while reading the broadcast, then stop:
+        what velocity mode does when the host falls silent (a killed host, a pulled cable), which no public
+        source says.  The joint turns towards the side with more room; at most speed x (stream + watch) of
+        travel.  Refused while armed, and when the joint lacks that room."""
+        if self.lifecycle is Lifecycle.ARMED:
+            raise LifecycleError(f"TM {self.endpoint}: the stream-stop probe arms the arm itself: stop first")
+        if not 0 <= joint < N_JOINTS or not 0 < speed_rad_s <= 0.2 or stream_s <= 0 or watch_s <= 0:
+            raise ValueError("stream_stop_probe: a joint 0-5, a speed in (0, 0.2] rad/s and positive durations")
+        q = self.read_state().q[joint]
+        lo, hi = self.limits.lower[joint], self.limits.upper[joint]
+        direction = 1.0 if hi - q >= q - lo else -1.0
+        travel = speed_rad_s * (stream_s + watch_s) + 0.05
+        if (hi - q if direction > 0 else q - lo) < travel:
+            raise LifecycleError(f"TM {self.endpoint}: joint {joint + 1} has under {travel:.2f} rad of room on "
+                                 "either side for the stream-stop probe: move it towards mid-range first")
+        speeds = np.zeros(N_JOINTS)
+        speeds[joint] = direction * speed_rad_s
+        self.arm()
+        try:
+            reached, next_t = 0.0, time.monotonic()
+            last = next_t
+            end = next_t + stream_s
+            while next_t < end:
+                self._node.send_script([set_continue_vjog(np.degrees(speeds))])
+                last = time.monotonic()
+                next_t += self.dt
+                while (now := time.monotonic()) < next_t:
+                    time.sleep(min(_POLL_S, next_t - now))
+                    self._poll()
+                    if self._latest is not None:
+                        reached = max(reached, abs(float(self._latest.dq[joint])))
+            samples: list[tuple[float, float, float]] = []
+            seen = self._seq
+            while (now := time.monotonic()) < last + watch_s:
+                time.sleep(_POLL_S)
+                self._poll()
+                if self._seq != seen and self._latest is not None:
+                    seen = self._seq
+                    samples.append((self._latest_t - last, float(self._latest.q[joint]),
+                                    float(self._latest.dq[joint])))
+        finally:
+            self.stop()
+            self.confirm_stop()
+        return stream_stop(joint, direction * speed_rad_s, stream_s, watch_s, reached, samples)
 
     def confirm_stop(self) -> None:
         """Wait (bounded by reply_timeout_s) for the Listen node's replies to the last stop's two scripts:

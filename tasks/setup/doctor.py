@@ -1,8 +1,9 @@
 """Bring-up checks of a cell's wiring: arm reachable, register map sane, robot-side program alive, sensor sound.
 
 Every check is named, passes or fails, and says what to do when it fails.  The arm is never armed or
-commanded here (only read), so the checks are safe with the arm in any state; the sensor is tared
-and read at rest.  A check whose precondition failed is `skipped` (its cause is the earlier failure).
+commanded here (only read), so the checks are safe with the arm in any state, except the one asked for by
+name (`stream_stop`, route B: it turns the last wrist joint a few degrees); the sensor is tared and read at
+rest.  A check whose precondition failed is `skipped` (its cause is the earlier failure).
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ class DoctorSettings:
     # The late tail (p95) a step may reach, in periods: 1 on a real cell (the robot side's jitter buffer
     # takes one period); the emulated cell's emulators share this machine's CPU, so it allows more.
     tail_periods: float = 1.0
+    stream_stop: bool = False  # route B: run the check that moves the arm (asked for by name)
 
 
 class Doctor:
@@ -92,6 +94,14 @@ class Doctor:
                 "100 %; a node that cannot keep up with the loop's rate: a longer loop.period_s, or (knowing the "
                 "commands then act later) devices.arm.settings.max_unanswered_scripts / max_reply_age_s "
                 "(docs/real-cell.md)"), run=node)
+            self._step("stream_stop", self._stream_stop, (
+                "velocity mode keeps the last streamed speed when the host falls silent: a killed host or a pulled "
+                "cable leaves the arm moving (the driver caps each speed so that 0.1 s of it stays in the joint "
+                "range, no more).  Keep the E-stop in reach, set TMflow's safety speed limits to the cell's work, "
+                "or use route A, whose robot-side program stops on a stalled heartbeat (docs/real-cell.md)"),
+                run=node and self.s.stream_stop, skip_reason=None if not node or self.s.stream_stop else (
+                    "not run: it moves the arm (the last wrist joint, about 4 degrees): `doctor --stream-stop` "
+                    "with the tool clear and a hand on the E-stop"))
         port = self._step("sensor_port", self._sensor_connect, (
             "check devices.sensor.settings.port (the device exists, your user may open it: dialout group), "
             "the baud rate, and that the sensor is powered; a USB adapter's latency timer over the reply timeout: "
@@ -239,6 +249,14 @@ class Doctor:
             f"{detail}; {streamed}: over max_unanswered_scripts {cfg.max_unanswered_scripts} or max_reply_age_s "
             f"{cfg.max_reply_age_s * 1e3:.0f} ms, the driver would stop the arm at this rate")
         return f"{detail}; command_latency_periods {have} covers it; {streamed}"
+
+    def _stream_stop(self) -> str:
+        assert isinstance(self.arm, TMEthernetArm)
+        probe = self.arm.stream_stop_probe()
+        assert probe.moved, (f"{probe.summary()}: the streamed speed did not reach the joint (project paused, "
+                             "or below 100 % project speed?)")
+        assert probe.stopped_after_s is not None, probe.summary()
+        return probe.summary()
 
     def _connect(self) -> str:
         assert isinstance(self.arm, TM5ModbusArm)
