@@ -134,7 +134,8 @@ def serve_cell(cfg: CellConfig, seed: int | None, scene: SceneKind, port: int = 
 # milliseconds or a probability), checked whole: a malformed one is refused, never skipped (which would
 # change the command's meaning, e.g. `delay 20 -1` read as `delay 20`: for ever).
 ARM_COMMANDS = {"drop_link": (1, 1), "freeze": (0, 1), "unfreeze": (0, 0), "delay": (1, 2), "exceptions": (0, 1),
-                "estop": (0, 1), "clear": (0, 0), "table_offset": (1, 1), "safeguard": (0, 1), "listen_lag": (1, 1)}
+                "estop": (0, 1), "clear": (0, 0), "table_offset": (1, 1), "safeguard": (0, 1), "listen_lag": (1, 1),
+                "vjog_timeout": (1, 1)}
 SENSOR_COMMANDS = {"garbage": (1, 1), "split": (1, 1), "drop": (1, 1), "delay": (1, 2), "clear": (0, 0)}
 
 
@@ -196,7 +197,7 @@ def _apply(words: list[str], arm_emu: Any, sensor_faults: Any) -> None:
         arm_emu.inject_exceptions(args[0] if args else None)
     elif head == "estop":
         arm_emu.press_estop(args[0] if args else None)
-    elif head in ("table_offset", "safeguard", "listen_lag"):
+    elif head in ("table_offset", "safeguard", "listen_lag", "vjog_timeout"):
         raise ValueError(f"'{head}' is for TM's channels (the Ethernet Slave, its Listen node and the Modbus table "
                          "beside them); this emulator serves Modbus alone")
     else:
@@ -218,6 +219,8 @@ def _apply_tm_ethernet(head: str, args: list[float], arm_emu: Any) -> None:
         arm_emu.trigger_safeguard(args[0] if args else None)
     elif head == "listen_lag":  # `listen_lag MS`: the Listen node takes MS per packet (its replies fall behind)
         arm_emu.set_script_interval(args[0] / 1000.0)
+    elif head == "vjog_timeout":  # `vjog_timeout MS`: velocity mode stops MS after the last speed (0: keeps it)
+        arm_emu.set_vjog_timeout(args[0] / 1000.0 if args[0] > 0 else None)
     elif head in ("unfreeze", "clear"):
         arm_emu.clear_faults()
         arm_emu.set_script_interval(0.0)

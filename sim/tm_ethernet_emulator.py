@@ -189,6 +189,16 @@ class TMEthernetEmulator(EmulatorLoop):
             self.script_interval_s = seconds
         self._call(apply)
 
+    def set_vjog_timeout(self, seconds: float | None) -> None:
+        """Velocity mode zeroes the streamed speed `seconds` after the last SetContinueVJog from now on (None: it
+        keeps the last speed, the default: no public source says which the controller does)."""
+        if seconds is not None:
+            _check_interval(seconds)
+
+        def apply() -> None:
+            self.node.vjog_timeout_s = seconds
+        self._call(apply)
+
     def set_project_speed(self, percent: int) -> None:
         """Project_Speed reads `percent` from the next broadcast on (TMflow: 5-100 in steps of 5)."""
         if not (isinstance(percent, int) and 5 <= percent <= 100):

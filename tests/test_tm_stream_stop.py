@@ -109,3 +109,25 @@ def test_the_probe_refuses_an_armed_arm_and_a_joint_without_room(emulator: TMEth
         assert tight.lifecycle is not Lifecycle.ARMED and not emulator.node.vmode.active
     finally:
         tight.disconnect()
+
+
+def test_the_emulated_cells_vjog_timeout_command_sets_what_the_probe_measures() -> None:
+    from sim.serve_cell import _apply
+
+    emu = start(KinematicPlant(dt=DT))
+    try:
+        _apply(["vjog_timeout", "100"], emu, None)
+        wait_for(lambda: emu.node.vjog_timeout_s == 0.1, what="the command applied")
+        arm = make_arm(emu)
+        arm.connect()
+        try:
+            probe = arm.stream_stop_probe(speed_rad_s=SPEED, stream_s=0.2, watch_s=0.5)
+        finally:
+            arm.disconnect()
+        assert probe.stopped_after_s is not None
+        _apply(["vjog_timeout", "0"], emu, None)  # 0: the last speed is kept again
+        wait_for(lambda: emu.node.vjog_timeout_s is None, what="the command applied")
+        with pytest.raises(ValueError, match="vjog_timeout takes 1 argument"):
+            _apply(["vjog_timeout"], emu, None)
+    finally:
+        emu.stop()
