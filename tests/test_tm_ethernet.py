@@ -52,7 +52,7 @@ from drivers.tm5.tm_packet import FrameError, TMFramer, TMPacket, encode_packet
 from sim.kinematic_plant import KinematicPlant
 from sim.tm_ethernet_emulator import TMEthernetEmulator
 from sim.tm_listen_node import ListenNode
-from tests.tm_ethernet_fixtures import DT, LIMITS, make_arm, start, wait_for
+from tests.tm_ethernet_fixtures import DT, LIMITS, connected, make_arm, start, wait_for
 
 # The worked examples of docs/tm-ethernet-listen.md.
 VECTORS = [
@@ -260,10 +260,7 @@ def emulator(plant: KinematicPlant) -> Iterator[TMEthernetEmulator]:
 
 @pytest.fixture
 def arm(emulator: TMEthernetEmulator) -> Iterator[TMEthernetArm]:
-    a = make_arm(emulator)
-    a.connect()
-    yield a
-    a.disconnect()
+    yield from connected(emulator)
 
 
 def test_state_is_what_is_broadcast(arm: TMEthernetArm, emulator: TMEthernetEmulator,

@@ -24,7 +24,7 @@ from drivers.tm5.ethernet_slave import (
 from sim.kinematic_plant import KinematicPlant
 from sim.tm_ethernet_emulator import TMEthernetEmulator
 from tasks.setup.doctor import Doctor, DoctorSettings
-from tests.tm_ethernet_fixtures import LIMITS, make_arm, start, wait_for
+from tests.tm_ethernet_fixtures import LIMITS, connected, make_arm, start, wait_for
 
 ALL_ITEMS = [name for name, _ in encode_state_items(np.zeros(6), np.zeros(6), np.zeros(6))]
 
@@ -38,10 +38,7 @@ def emulator() -> Iterator[TMEthernetEmulator]:
 
 @pytest.fixture
 def arm(emulator: TMEthernetEmulator) -> Iterator[TMEthernetArm]:
-    a = make_arm(emulator)
-    a.connect()
-    yield a
-    a.disconnect()
+    yield from connected(emulator)
 
 
 def read_until(arm: TMEthernetArm, cond: object, what: str) -> None:

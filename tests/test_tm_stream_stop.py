@@ -15,7 +15,7 @@ from drivers.tm5.stream_stop import stream_stop
 from sim.kinematic_plant import KinematicPlant
 from sim.tm_ethernet_emulator import TMEthernetEmulator
 from tasks.setup.doctor import Doctor, DoctorSettings
-from tests.tm_ethernet_fixtures import DT, LIMITS, make_arm, start, wait_for
+from tests.tm_ethernet_fixtures import DT, LIMITS, connected, make_arm, start, wait_for
 
 SPEED = 0.05  # rad/s
 
@@ -29,10 +29,7 @@ def emulator(request: pytest.FixtureRequest) -> Iterator[TMEthernetEmulator]:
 
 @pytest.fixture
 def arm(emulator: TMEthernetEmulator) -> Iterator[TMEthernetArm]:
-    a = make_arm(emulator)
-    a.connect()
-    yield a
-    a.disconnect()
+    yield from connected(emulator)
 
 
 def test_the_result_is_read_off_the_tables_after_the_last_speed() -> None:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -41,3 +41,13 @@ def make_arm(emu: TMEthernetEmulator, **overrides: Any) -> TMEthernetArm:
     cfg = TMEthernetConfig(host="127.0.0.1", slave_port=emu.slave_port, listen_port=emu.listen_port,
                            connect_timeout_s=2.0, **overrides)
     return TMEthernetArm(cfg, LIMITS, DT)
+
+
+def connected(emu: TMEthernetEmulator, **overrides: Any) -> Iterator[TMEthernetArm]:
+    """A module's `arm` fixture body: the driver connected to `emu`, disconnected after the test."""
+    arm = make_arm(emu, **overrides)
+    arm.connect()
+    try:
+        yield arm
+    finally:
+        arm.disconnect()
