@@ -79,6 +79,22 @@ def test_doctor_names_each_injected_fault(emulated, fault, check, words):
     assert [c["name"] for c in out["checks"]] == CHECKS
 
 
+def test_the_stream_stop_check_asked_for_on_the_modbus_route_says_why_it_does_not_run(emulated):
+    holder, robot, cfg = emulated
+    try:
+        checks = Doctor(holder.arm, holder.sensor, robot.limits,
+                        DoctorSettings(period_s=cfg.loop.period_s, tare_s=0.3, timing_steps=40, tail_periods=3.0,
+                                       stream_stop=True)).run()
+    finally:
+        for device in (holder.arm, holder.sensor):
+            with contextlib.suppress(DriverError):
+                device.disconnect()
+    out = report(checks, "emulated")
+    skipped = next(c for c in out["checks"] if c["name"] == "stream_stop")
+    assert skipped["status"] == "skipped" and "Modbus route streams no speeds" in skipped["detail"]
+    assert out["passed"] is True and [c["name"] for c in out["checks"] if c["name"] != "stream_stop"] == CHECKS
+
+
 @pytest.mark.parametrize("over", [False, True])
 def test_the_sensor_port_check_reads_the_usb_adapters_latency_timer(emulated, monkeypatch, over):
     from drivers.wacoh.driver import WacohSensor
