@@ -13,9 +13,8 @@ import numpy as np
 
 from app.cells import cell_kind, open_cell
 from app.common import emit, save_bench_summary
-from app.planning_model import ARTEFACTS, NOMINAL, prepared_model, torque_model
+from app.planning_model import ARTEFACTS, planning_model
 from app.sensing import with_guard
-from app.tasks_registry import robot_for
 from cell.config import CellConfig, load_config
 from cell.model.robot import RobotModel
 from drivers.errors import ConfigError
@@ -96,11 +95,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
         unknown = [p for p in only if p not in plan_file.paths]
         if unknown:
             raise ConfigError(f"{args.plans}: no path named '{unknown[0]}' (known: {', '.join(plan_file.paths)})")
-    # The prepared model is the cell's own (made, when missing, as `run` makes it), before the plans' TCP limit.
-    model_path = None if args.model == NOMINAL else args.model or prepared_model(cfg, cell_kind(cfg, args.cell))
-    cfg.safety = replace(cfg.safety, max_tcp_speed=plan_file.max_tcp_speed)
-    robot = robot_for(cfg, "wipe")
-    predictor, model_name, terms = torque_model(cfg, robot, model_path)
+    robot, predictor, model_name, terms = planning_model(cfg, args.model, cell_kind(cfg, args.cell),
+                                                         plan_file.max_tcp_speed)
     collisions = CollisionChecker.for_scene(robot, replace(cfg.scene, kind="free"))
 
     def open_for_plan() -> tuple[Any, Any]:

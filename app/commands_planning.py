@@ -11,9 +11,8 @@ import numpy as np
 
 from app.cells import cell_identity, open_cell
 from app.common import load_cell_config
-from app.planning_model import ARTEFACTS, NOMINAL, PLANS, prepared_model, torque_model
+from app.planning_model import ARTEFACTS, PLANS, planning_model
 from app.sensing import with_guard
-from app.tasks_registry import robot_for
 from cell.cliargs import int_in
 from drivers.errors import ConfigError
 
@@ -56,11 +55,7 @@ def bench_planning_cmd(args: argparse.Namespace) -> dict[str, Any]:
 
     cfg = load_cell_config(args)
     plan_file = load_plan_file(PLANS)
-    # The prepared model is the cell's own (made, when missing, as `run` makes it), before the plans' TCP limit.
-    model_path = None if args.model == NOMINAL else args.model or prepared_model(cfg, "sim")
-    cfg.safety = replace(cfg.safety, max_tcp_speed=plan_file.max_tcp_speed)  # as `main.py plan` runs them
-    robot = robot_for(cfg, "wipe")
-    predictor, model_name, terms = torque_model(cfg, robot, model_path)
+    robot, predictor, model_name, terms = planning_model(cfg, args.model, "sim", plan_file.max_tcp_speed)
     effort = robot.limits.effort
     if not np.all(np.isfinite(effort) & (effort > 0)):
         raise ConfigError("bench planning: the robot's URDF has no finite effort limits")

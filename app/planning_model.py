@@ -4,6 +4,7 @@ a simulated cell when missing), its name (which keys every stored setting), and 
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -11,6 +12,7 @@ import numpy as np
 
 from app.cells import is_simulated
 from app.sensing import PREPARE_SAMPLES, run_prepare
+from app.tasks_registry import robot_for
 from cell.config import CONFIG_DIR, CellConfig
 from cell.model.robot import RobotModel
 from drivers.errors import ConfigError
@@ -19,6 +21,18 @@ log = logging.getLogger("tmcell")
 NOMINAL = "nominal"  # --model nominal: the URDF's rigid body (P1), no prepared model needed
 PLANS = CONFIG_DIR / "plans.yaml"  # the named paths and the planner settings `main.py plan` uses
 ARTEFACTS = Path("artifacts/planning")  # bench planning's calibrations and policy, keyed by what they were made for
+
+
+def planning_model(cfg: CellConfig, model: str | None, kind: str, plans_tcp_speed: float
+                   ) -> tuple[RobotModel, Any, str, Any]:
+    """What `plan` and `bench planning` plan with: `--model` (a saved model, `nominal`, or None: the prepared one,
+    made first when missing, on the cell's config as given, as `run` makes it); then `cfg`'s TCP speed stop is
+    raised to the plan file's limit, as the plans run (in place).  Returns the robot, the torque predictor, its
+    name and toppra's part of it (`torque_model`)."""
+    path = None if model == NOMINAL else model or prepared_model(cfg, kind)
+    cfg.safety = replace(cfg.safety, max_tcp_speed=plans_tcp_speed)
+    robot = robot_for(cfg, "wipe")
+    return (robot, *torque_model(cfg, robot, path))
 
 
 def torque_model(cfg: CellConfig, robot: RobotModel, path: str | None) -> tuple[Any, str, Any]:

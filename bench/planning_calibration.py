@@ -158,9 +158,10 @@ def calibrate_trust(planner: ToppraPlanner, ref: list[tuple[str, np.ndarray]], r
     binding = sorted({c["runs"][-1]["joint"] for c in checks if not c["ok"] and c["runs"][-1].get("joint") is not None})
     per_joint = np.full(n, best)
     exercised = exercised_joints(planner, ref, per_joint, exercised_share) if binding and best < hi else []
+    rise = sorted(set(exercised) - set(binding))  # the joints whose share is bisected further
     joint_checks: list[dict[str, Any]] = []
-    if binding and best < hi and joint_steps > 0 and set(exercised) - set(binding):
-        held = ~np.isin(np.arange(n), sorted(set(exercised) - set(binding)))
+    if rise and joint_steps > 0:
+        held = ~np.isin(np.arange(n), rise)
 
         def scale(f: float) -> np.ndarray:
             return np.where(held, best, f)

@@ -84,7 +84,15 @@ def test_doctor_runs_it_only_when_asked_and_fails_a_node_that_keeps_moving(emula
         assert check.status == "pass" and "stopped by itself" in check.detail  # type: ignore[attr-defined]
 
 
-def test_the_probe_refuses_an_armed_arm_and_a_joint_without_room(emulator: TMEthernetEmulator) -> None:
+def test_the_probe_refuses_an_armed_arm_and_a_joint_without_room() -> None:
+    emulator = start(KinematicPlant(dt=DT))  # the node's stop behaviour does not matter here: one emulator
+    try:
+        _refuses(emulator)
+    finally:
+        emulator.stop()
+
+
+def _refuses(emulator: TMEthernetEmulator) -> None:
     arm = make_arm(emulator)
     arm.connect()
     try:

@@ -101,16 +101,15 @@ class Recorder:
         if self._names is None:
             self._names = list(row)
             self._numbers = [c for c, v in row.items() if isinstance(v, float)]
-            self._columns = {c: [] for c in row if c not in set(self._numbers)}
+            self._columns = {c: [] for c, v in row.items() if not isinstance(v, float)}
             self._block = np.empty((len(self._numbers), self.chunk_rows))
         try:
             self._block[:, self._rows] = [row.get(c, _NAN) for c in self._numbers]
         except (TypeError, ValueError):
-            bad = [(c, type(row.get(c)).__name__) for c in self._numbers
-                   if not isinstance(row.get(c, _NAN), (float, int, type(None)))][:1] or [("?", "value")]
+            bad = next((c for c in self._numbers if not isinstance(row.get(c), (float, int, type(None)))), "?")
             wait(self._pending)  # the parts before this row are whole: they are written first
             self._failure = RecordingError(f"{self.log_dir / _part_name(self._parts)}: cannot write the step log: "
-                                           f"column {bad[0][0]!r} holds a {bad[0][1]} among numbers")
+                                           f"column {bad!r} holds a {type(row.get(bad)).__name__} among numbers")
             raise self._failure from None
         for name, values in self._columns.items():
             values.append(row.get(name))

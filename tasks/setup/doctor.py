@@ -103,9 +103,9 @@ class Doctor:
                     "not run: it moves the arm (the last wrist joint, about 4 degrees): `doctor --stream-stop` "
                     "with the tool clear and a hand on the E-stop"))
         elif self.s.stream_stop and self.arm is not None:
-            self._step("stream_stop", lambda: "", "", run=False, skip_reason=(
+            self.checks.append(Check("stream_stop", "skipped", (
                 "not run: the Modbus route streams no speeds; its robot-side program stops the arm when the host's "
-                "heartbeat stalls (docs/robot-side-program.md)"))
+                "heartbeat stalls (docs/robot-side-program.md)")))
         port = self._step("sensor_port", self._sensor_connect, (
             "check devices.sensor.settings.port (the device exists, your user may open it: dialout group), "
             "the baud rate, and that the sensor is powered; a USB adapter's latency timer over the reply timeout: "
