@@ -29,6 +29,11 @@ class DetectorSettings:
     stick_speed: float = 0.05  # rad/s: below it a joint's friction may hold anything in its static band
     coverage_min_count: float = 20.0  # training samples a (q, q', q'') cell needs before the model's own level applies
     confirm_periods: int = 1  # periods in a row over the threshold before it counts
+    # These joints (1-based) also count together: the root-sum-square of their residual / threshold ratios over 1
+    # is a collision.  A force at the tool loads the joints that carry the wrist through the arm's lever all at
+    # once, where the model's errors seldom peak on all of them together; the unit sphere inside the cube of
+    # the per-joint checks, so every per-joint detection on these joints is one of this check too.  [] : off.
+    combined_joints: list[int] = field(default_factory=lambda: [1, 2, 3])
     # Thresholds x this on a cell read over a wire (emulated, real), and at least 2 periods over them:
     # the host reads at its own pace, not the controller's cycle, so samples repeat, skip and jitter
     # against the targets it streams, and the arm's torques with them.
@@ -49,6 +54,9 @@ class DetectorSettings:
         require(0 < self.wire_observer_gain <= 1000, f"{where}.wire_observer_gain", "must lie in (0, 1000] 1/s")
         require(1 <= self.wire_margin <= 10, f"{where}.wire_margin", "must lie in [1, 10]")
         require(1 <= self.confirm_periods <= 10, f"{where}.confirm_periods", "must lie in 1..10")
+        require(all(isinstance(j, int) and j >= 1 for j in self.combined_joints)
+                and len(set(self.combined_joints)) == len(self.combined_joints),
+                f"{where}.combined_joints", "must be distinct joint numbers from 1")
         require(0 <= self.command_window_periods <= 50, f"{where}.command_window_periods", "must lie in 0..50")
         require(self.rebias_window_s > 0, f"{where}.rebias_window_s", "must be > 0")
 

@@ -36,7 +36,10 @@ for steady contact forces and filters short impacts away).  Per joint the thresh
   joint-5 alarm while braking with +0.45 kg);
 * floor_j: what is left (quantisation, the servo's transients) and the configured margin.
 
-In free motion a joint over its threshold for `confirm_periods` periods in a row is a collision.  In a
+In free motion a joint over its threshold for `confirm_periods` periods in a row is a collision, and so are
+the `combined_joints` (1-3: the ones a tool force loads through the arm's lever) when the root-sum-square of
+their ratios |r_j| / thr_j is over 1 as long: a contact pushes them all at once, which the model's errors seldom
+do, so three joints at 0.6-0.8 of their thresholds together count.  In a
 state where the task expects contact the joint residual carries the task's own force, so there the
 fast residual is mapped to a tool wrench and its force checked against the task's contact limit: a
 short impact the task's filtered wrench would hide still counts.
@@ -76,22 +79,24 @@ class Detection:
     state: str  # the task's state
     mode: str  # "free" (joint thresholds) or "contact" (tool force against the contact limit)
     joints: list[int]  # 1-based joints over their thresholds (free mode)
-    ratio: float  # largest |r_j| / thr_j (free) or |F| / limit (contact)
+    ratio: float  # largest |r_j| / thr_j or the combined joints' root-sum-square (free), |F| / limit (contact)
     residual_nm: list[float]
     threshold_nm: list[float]
     force_n: list[float]  # the fast tool force at detection, tool frame (as the F/T sensor; tool on environment)
+    together: bool = False  # free mode: no joint alone was over, the combined joints' root-sum-square was
 
     def describe(self) -> str:
         if self.mode == "free":
             js = ", ".join(str(j) for j in self.joints)
+            what = "together near their thresholds" if self.together else "over threshold"
             return (f"collision in state {self.state} at t={self.t:.3f} s: joint{'s' if len(self.joints) > 1 else ''} "
-                    f"{js} over threshold ({self.ratio:.1f}x)")
+                    f"{js} {what} ({self.ratio:.1f}x)")
         return (f"collision in state {self.state} at t={self.t:.3f} s: fast tool force "
                 f"{np.linalg.norm(self.force_n):.0f} N over the contact limit ({self.ratio:.1f}x)")
 
     def to_dict(self) -> dict[str, Any]:
         return {"t": round(self.t, 4), "cycle": self.cycle, "state": self.state, "mode": self.mode,
-                "joints": list(self.joints), "ratio": round(self.ratio, 3),
+                "joints": list(self.joints), "ratio": round(self.ratio, 3), "together": self.together,
                 "residual_nm": [round(v, 3) for v in self.residual_nm],
                 "threshold_nm": [round(v, 3) for v in self.threshold_nm],
                 "force_n": [round(v, 2) for v in self.force_n]}
@@ -135,9 +140,12 @@ class CollisionDetector:
         if len(settings.floor_nm) != n:
             raise ValueError(f"collision.detector.floor_nm needs {n} values (one per joint), "
                              f"got {len(settings.floor_nm)}")
+        if any(j > n for j in settings.combined_joints):
+            raise ValueError(f"collision.detector.combined_joints names joints 1..{n}, got {settings.combined_joints}")
         self.settings = settings
         self.dt = dt
         self.n = n
+        self._combined = np.asarray(settings.combined_joints, np.int64) - 1
         gain = min(settings.observer_gain, settings.wire_observer_gain) if over_wire else settings.observer_gain
         self.gain = gain
         self.over_wire = over_wire
@@ -177,6 +185,8 @@ class CollisionDetector:
         self._g_zero = np.zeros(self.n)
         self._zeroed = False
         self._over = np.zeros(self.n, np.int64)
+        self._combined_over = 0
+        self.together = False  # the last free check's detection was the combined joints' alone
         self._force_over = 0
         self._travel = np.zeros(self.n)  # |q'| integrated since the residual was last zeroed [rad]
         self.residual = np.zeros(self.n)
@@ -369,10 +379,17 @@ class CollisionDetector:
         or a repeated one (over a wire) holds the count: it neither confirms a collision nor clears one building up."""
         if self.held:
             return np.zeros(0, np.int64)
-        over = np.abs(self.residual) > self.threshold
-        self._over = np.where(over, self._over + 1, 0)
+        r = self.ratios()
+        self._over = np.where(r > 1.0, self._over + 1, 0)
+        self._combined_over = self._combined_over + 1 if self.combined_ratio(r) > 1.0 else 0
         self._force_over = 0
-        return np.flatnonzero(self._over >= self.confirm)
+        hit = np.flatnonzero(self._over >= self.confirm)
+        self.together = hit.size == 0 and self._combined_over >= self.confirm
+        if self.together:
+            # The joints carrying the combined check: each at least the share it would hold were all equal.
+            c = self._combined
+            hit = np.sort(c[r[c] >= 1.0 / np.sqrt(c.size)])
+        return hit
 
     def check_contact(self, limit_n: float) -> bool:
         """Whether the fast tool force has been over `limit_n` for `confirm_periods` periods in a row.  A
@@ -384,4 +401,15 @@ class CollisionDetector:
         return self._force_over >= self.confirm
 
     def ratios(self) -> np.ndarray:
+        """Per joint: |r_j| / thr_j."""
         return np.abs(self.residual) / self.threshold
+
+    def combined_ratio(self, ratios: np.ndarray | None = None) -> float:
+        """The combined joints' root-sum-square of their ratios (0 with none)."""
+        r = self.ratios() if ratios is None else ratios
+        return float(np.sqrt(np.sum(r[self._combined] ** 2)))
+
+    def ratio(self) -> float:
+        """How near the free check is to a detection (1 = detection): the largest joint ratio or the combined one."""
+        r = self.ratios()
+        return max(float(r.max()), self.combined_ratio(r))

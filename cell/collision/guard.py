@@ -176,16 +176,19 @@ class ContactGuard:
             over = d.check_free()
             hit = over.size > 0
             ratios = d.ratios()
-            ratio = float(ratios.max())
+            combined = d.combined_ratio(ratios)
+            ratio = max(float(ratios.max()), combined)
             if not d.held and ratio > self.stats.max_free_ratio:
                 self.stats.max_free_ratio = ratio
                 j = int(ratios.argmax())
                 dq = np.abs(np.asarray(state.dq, float))
-                # Where the margin is thinnest says which term of the threshold to look at (docs/collision.md).
+                # Where the margin is thinnest says which term of the threshold to look at (docs/collision.md);
+                # `joint` is the largest single ratio's also when the combined check is the nearer.
                 self.stats.max_free_at = {"t": round(t, 3), "state": task_state, "joint": j + 1,
                                           "joint_speed": round(float(dq[j]), 3), "arm_speed": round(float(dq.max()), 3),
                                           "residual_nm": round(float(d.residual[j]), 2),
-                                          "threshold_nm": round(float(d.threshold[j]), 2)}
+                                          "threshold_nm": round(float(d.threshold[j]), 2),
+                                          "combined": combined > float(ratios.max())}
             joints = [int(j) + 1 for j in over]
             mode = "free"
         if not hit:
@@ -196,7 +199,8 @@ class ContactGuard:
             return None
         self._latched = True
         det = Detection(t=t, cycle=cycle, state=task_state, mode=mode, joints=joints, ratio=ratio,
-                        residual_nm=d.residual.tolist(), threshold_nm=d.threshold.tolist(), force_n=d.force.tolist())
+                        residual_nm=d.residual.tolist(), threshold_nm=d.threshold.tolist(), force_n=d.force.tolist(),
+                        together=mode == "free" and d.together)
         self.last = det
         self.stats.detections.append(det.to_dict())
         return det
@@ -237,7 +241,7 @@ class ContactGuard:
 
     def log_columns(self) -> dict[str, float]:
         d = self.detector
-        return {"coll_ratio": float(d.ratios().max()), "fast_fx": float(d.force[0]), "fast_fy": float(d.force[1]),
+        return {"coll_ratio": d.ratio(), "fast_fx": float(d.force[0]), "fast_fy": float(d.force[1]),
                 "fast_fz": float(d.force[2])}
 
     def summary(self) -> dict[str, Any]:

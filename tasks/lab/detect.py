@@ -151,7 +151,7 @@ def run_detector(model: LearnedModel, robot: RobotModel, traj: Trajectory, setti
             continue
         over = detector.check_free()
         ratio[k] = r = detector.ratios()
-        worst_ratio = float(r.max())
+        worst_ratio = max(float(r.max()), detector.combined_ratio(r))
         run.max_free_ratio = max(run.max_free_ratio, worst_ratio)
         under_since = (under_since if under_since is not None else rel) if worst_ratio <= 1.0 else None
         if over.size == 0:
@@ -163,7 +163,8 @@ def run_detector(model: LearnedModel, robot: RobotModel, traj: Trajectory, setti
         latched = True
         j = int(over[np.argmax(r[over])])
         run.detections.append({"t_s": round(rel, 4), "joint": j + 1, "joints": [int(i) + 1 for i in over],
-                               "ratio": round(float(r[j]), 3), "residual_nm": round(float(detector.residual[j]), 2),
+                               "ratio": round(worst_ratio if detector.together else float(r[j]), 3),
+                               "together": detector.together, "residual_nm": round(float(detector.residual[j]), 2),
                                "threshold_nm": round(float(detector.threshold[j]), 2)})
     if not zeroed:
         log.warning("%s: %.3f s long, shorter than the detector's settling (%.3f s): not checked",
