@@ -272,10 +272,10 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     dur = {p: np.array([r[p].get("validated_s") or np.nan for r in rows]) for p in PLANNER_NAMES}
     out: dict[str, Any] = {
         # over the paths where both ran within the limits, each with its first such run
-        "median_time_ratio": {p: float(np.nanmedian(dur[p] / dur["kinematic"])) for p in PLANNER_NAMES},
-        "median_time_ratio_first_run": {p: float(np.nanmedian(first[p] / first["kinematic"])) for p in PLANNER_NAMES},
-        "median_time_ratio_speed_limit_only": float(np.nanmedian(
-            np.array([r.get("speed_limit_only_s", np.nan) for r in rows]) / dur["kinematic"])),
+        "median_time_ratio": {p: nanmedian(dur[p] / dur["kinematic"]) for p in PLANNER_NAMES},
+        "median_time_ratio_first_run": {p: nanmedian(first[p] / first["kinematic"]) for p in PLANNER_NAMES},
+        "median_time_ratio_speed_limit_only": nanmedian(
+            np.array([r.get("speed_limit_only_s", np.nan) for r in rows]) / dur["kinematic"]),
         # first runs (single shot at the per-arm setting) over a torque limit
         "torque_violations": {p: sum(bool(r[p].get("torque_violation")) for r in rows) for p in PLANNER_NAMES},
         "unvalidated_paths": {p: sum(r[p].get("validated_s") is None for r in rows) for p in PLANNER_NAMES},
@@ -303,10 +303,11 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     saving = np.array([pct(m, p) for m, p in zip(dur["model"], dur["ppo"], strict=True)])
     both = np.isfinite(saving)  # the paths where both have a run within the limits
     out["model_vs_ppo"] = {"paths_model_not_slower": int(np.sum(saving[both] >= -0.05)), "paths": int(both.sum()),
-                           "median_saving_pct": float(np.nanmedian(saving)),
-                           "min_saving_pct": float(np.nanmin(saving)), "max_saving_pct": float(np.nanmax(saving))}
-    out["reduction_vs_uniform_median_pct"] = {p: float(np.nanmedian([pct(a, u) for a, u in
-                                                                      zip(dur[p], dur["uniform"], strict=True)]))
+                           "median_saving_pct": nanmedian(saving),
+                           "min_saving_pct": float(saving[both].min()) if both.any() else None,
+                           "max_saving_pct": float(saving[both].max()) if both.any() else None}
+    out["reduction_vs_uniform_median_pct"] = {p: nanmedian([pct(a, u) for a, u in
+                                                                zip(dur[p], dur["uniform"], strict=True)])
                                               for p in ("kinematic", "ppo", "model")}
     named = {r["path"]: r for r in rows if r["path"] in PAPER_IMPROVEMENT_PCT}
     out["named_paths"] = {n: {"uniform_s": r["uniform"]["validated_s"], "ppo_s": r["ppo"]["validated_s"],

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import math
-import os
 import statistics
 import time
 from typing import Any
 
 import numpy as np
 
-from bench.machine import machine_load
 from cell.config import CellConfig
 from cell.control.loop import ControlLoop
 from cell.control.safety import SafetyMonitor
@@ -31,9 +29,6 @@ from tasks.wipe import WipeTask, load_wipe_config
 
 def bench_sim(cfg: CellConfig, seed: int | None = None, repeats: int = 2) -> dict[str, Any]:
     """Runs the whole wiping task (no recording) `repeats` times; RTF = simulated / wall seconds."""
-
-    bench_t0 = time.perf_counter()
-    load_before = machine_load()
     robot = cell_robot(cfg)
     wcfg = load_wipe_config(cfg.tasks.get("wipe"), f"{cfg.source}: tasks.wipe")
     sim_s, wall_s, outcomes, compute = 0.0, 0.0, [], []
@@ -88,10 +83,6 @@ def bench_sim(cfg: CellConfig, seed: int | None = None, repeats: int = 2) -> dic
         "cpu_seconds": cpu_s,
         "control_period_ms": cfg.loop.period_s * 1e3,
         "physics_substeps": holder.plant.substeps,
-        "bench_wall_s": time.perf_counter() - bench_t0,
-        "load_avg_before": load_before,
-        "load_avg_after": machine_load(),
-        "cpu_count": os.cpu_count(),
     }
 
 
@@ -148,8 +139,4 @@ def bench_serial(n: int = 500) -> dict[str, float | int]:
 
 def bench_drivers(n: int = 500) -> dict[str, Any]:
     """`main.py bench drivers`: one Modbus state read + target write, and one serial `R` to a parsed wrench."""
-    t0 = time.perf_counter()
-    load_before = machine_load()
-    out: dict[str, Any] = {**bench_modbus(n), **bench_serial(n)}
-    return {**out, "bench_wall_s": time.perf_counter() - t0, "load_avg_before": load_before,
-            "load_avg_after": machine_load()}
+    return {**bench_modbus(n), **bench_serial(n)}
