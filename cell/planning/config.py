@@ -37,12 +37,12 @@ class PlannerConfig:
     # within 20 ms, and first runs overshot a motor there (why: docs/planning.md, "Start transients").
     torque_discretization: str = "interpolation"
     # The plant's torque overshoots the model's as the arm leaves rest (servo lag, friction breaking away,
-    # the controller's cubic interpolation of the set-points): the highest first-run peaks are 6-11 periods
-    # into the motion.  The rigid-body bound is lowered by this share over the first `start_margin_s` of the
-    # motion (back to the full bound over the next half window).  With the shorter start window of the exact
-    # step (`exact_smoothing_start_s`) a deeper margin holds those peaks for less time than a longer window
-    # would (docs/planning.md).
-    start_margin: float = 0.20
+    # the controller's cubic interpolation of the set-points).  The rigid-body bound can be lowered by this
+    # share over the first `start_margin_s` of the motion (back to the full bound over the next half window).
+    # The model trust calibrated on the plant (`bench planning`) holds most of the start peaks with the rest;
+    # without this margin a torque-bound start still reached the safety stop (joint 2 at 0.91 of its motor
+    # limit 32 ms into a short joint 1-3 move), and 0.10 holds it (docs/planning.md).
+    start_margin: float = 0.10
     start_margin_s: float = 0.10
     # What turns toppra's profile into set-points for ours: "exact" samples the profile as toppra made it
     # (the speed caps already hold between grid points, so nothing is stretched) and averages it over
@@ -56,14 +56,15 @@ class PlannerConfig:
     # stop on the plant (0.94 of the motor limit); 40 ms holds them.
     exact_smoothing_s: float = 0.04
     # The same bound where the arm leaves rest (the window gives way to `exact_smoothing_s` over the first
-    # 0.2 s).  Half the difference comes off every plan; the start peaks it raises are held by `start_margin`
-    # (docs/planning.md).  Equal windows: one plain average.
+    # 0.2 s).  Half the difference comes off every plan; the start peaks it raises are held by the calibrated
+    # trust (docs/planning.md).  Equal windows: one plain average.
     exact_smoothing_start_s: float = 0.024
     # And where the arm reaches rest (`exact_smoothing_s` gives way to it over the last 0.2 s): a shorter window
-    # takes half the difference off every plan.  On this plant the stop needs the motion's window: at 24 ms a
-    # wrist joint overshot its model as it stopped (0.92 of its motor limit on a trust reference path), and the
-    # trust calibrated for it cost the time back (docs/notes/planning-history.md).
-    exact_smoothing_stop_s: float = 0.04
+    # takes half the difference off every plan.  At 24 ms a wrist joint overshoots its model as the arm stops
+    # (joint 4 of a trust reference path, loaded through the base joints' braking), which holds the calibrated
+    # trust at about 0.82 on every joint; with the lighter start margin that is still the faster whole
+    # (docs/notes/planning-history.md).
+    exact_smoothing_stop_s: float = 0.024
     # The full model's torque beyond toppra's terms (viscous friction, the learned residual) is taken where
     # it occurs ("local": subtracted from the bound at each grid point, from the previous plan) rather than
     # by lowering a joint's bound along the whole path by its worst excess ("global").
