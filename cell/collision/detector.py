@@ -374,12 +374,14 @@ class CollisionDetector:
                 self._cmd_payload.append(self._payload_inertial(self._cmds[2], (self._cmds[2] - self._cmds[1])
                                                                 / self.dt, a))
 
-    def check_free(self) -> np.ndarray:
-        """Joints (0-based) over their thresholds for `confirm_periods` periods in a row.  A late sample
-        or a repeated one (over a wire) holds the count: it neither confirms a collision nor clears one building up."""
+    def check_free(self, ratios: np.ndarray | None = None) -> np.ndarray:
+        """Joints (0-based) over their thresholds for `confirm_periods` periods in a row, or else the combined joints
+        carrying a combined check over 1 as long (`together`); `ratios`: this period's `ratios()` where the caller
+        has them.  A late sample or a repeated one (over a wire) holds the count: it neither confirms a collision
+        nor clears one building up."""
         if self.held:
             return np.zeros(0, np.int64)
-        r = self.ratios()
+        r = self.ratios() if ratios is None else ratios
         self._over = np.where(r > 1.0, self._over + 1, 0)
         self._combined_over = self._combined_over + 1 if self.combined_ratio(r) > 1.0 else 0
         self._force_over = 0
@@ -409,7 +411,7 @@ class CollisionDetector:
         r = self.ratios() if ratios is None else ratios
         return float(np.sqrt(np.sum(r[self._combined] ** 2)))
 
-    def ratio(self) -> float:
+    def ratio(self, ratios: np.ndarray | None = None) -> float:
         """How near the free check is to a detection (1 = detection): the largest joint ratio or the combined one."""
-        r = self.ratios()
+        r = self.ratios() if ratios is None else ratios
         return max(float(r.max()), self.combined_ratio(r))

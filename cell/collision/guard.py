@@ -173,11 +173,10 @@ class ContactGuard:
             ratio = fast / self.contact_limit_n
             mode = "contact"
         else:
-            over = d.check_free()
+            ratios = d.ratios()  # once a period: the checks and the figures below share them
+            over = d.check_free(ratios)
             hit = over.size > 0
-            ratios = d.ratios()
-            combined = d.combined_ratio(ratios)
-            ratio = max(float(ratios.max()), combined)
+            ratio = d.ratio(ratios)
             if not d.held and ratio > self.stats.max_free_ratio:
                 self.stats.max_free_ratio = ratio
                 j = int(ratios.argmax())
@@ -188,7 +187,7 @@ class ContactGuard:
                                           "joint_speed": round(float(dq[j]), 3), "arm_speed": round(float(dq.max()), 3),
                                           "residual_nm": round(float(d.residual[j]), 2),
                                           "threshold_nm": round(float(d.threshold[j]), 2),
-                                          "combined": combined > float(ratios.max())}
+                                          "combined": ratio > float(ratios.max())}
             joints = [int(j) + 1 for j in over]
             mode = "free"
         if not hit:

@@ -149,9 +149,9 @@ def run_detector(model: LearnedModel, robot: RobotModel, traj: Trajectory, setti
                 detector.rebias()
                 zeroed = True
             continue
-        over = detector.check_free()
         ratio[k] = r = detector.ratios()
-        worst_ratio = max(float(r.max()), detector.combined_ratio(r))
+        over = detector.check_free(r)
+        worst_ratio = detector.ratio(r)
         run.max_free_ratio = max(run.max_free_ratio, worst_ratio)
         under_since = (under_since if under_since is not None else rel) if worst_ratio <= 1.0 else None
         if over.size == 0:
